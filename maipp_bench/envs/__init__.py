@@ -1,0 +1,10 @@
+"""MAIPP environments: the batched TorchRL env and its building blocks."""
+
+from maipp_bench.envs.belief import GPBelief, GPPrior
+from maipp_bench.envs.config import MAIPPConfig
+from maipp_bench.envs.maipp_env import METRICS, NODE_FEATURES, STATE_FEATURES, MAIPPEnv
+
+__all__ = [
+    "GPBelief", "GPPrior", "MAIPPConfig", "MAIPPEnv", "METRICS", "NODE_FEATURES",
+    "STATE_FEATURES",
+]

@@ -1,0 +1,48 @@
+"""Stationary covariance kernels, registered by name (``MAIPPConfig.kernel``)."""
+
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import torch
+
+# A kernel maps distances r >= 0 (any shape) to correlations in [0, 1]; the belief
+# multiplies by the prior variance. Adding a kernel is one function and one entry.
+KernelFn = Callable[[torch.Tensor, float], torch.Tensor]
+
+
+def matern12(r: torch.Tensor, length_scale: float) -> torch.Tensor:
+    return torch.exp(-r / length_scale)
+
+
+def matern32(r: torch.Tensor, length_scale: float) -> torch.Tensor:
+    s = math.sqrt(3.0) * r / length_scale
+    return (1.0 + s) * torch.exp(-s)
+
+
+def matern52(r: torch.Tensor, length_scale: float) -> torch.Tensor:
+    s = math.sqrt(5.0) * r / length_scale
+    return (1.0 + s + s * s / 3.0) * torch.exp(-s)
+
+
+def rbf(r: torch.Tensor, length_scale: float) -> torch.Tensor:
+    return torch.exp(-0.5 * (r / length_scale) ** 2)
+
+
+KERNELS: dict[str, KernelFn] = {
+    "matern12": matern12,
+    "matern32": matern32,
+    "matern52": matern52,
+    "rbf": rbf,
+}
+
+
+def pairwise_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Euclidean distances between point sets ``a [..., P, 2]`` and ``b [..., Q, 2]``.
+
+    Computed from coordinate differences (not the |a|^2 + |b|^2 - 2ab expansion) so that
+    duplicate points give exactly zero, which the exactness tests rely on.
+    """
+    diff = a.unsqueeze(-2) - b.unsqueeze(-3)
+    return torch.sqrt((diff * diff).sum(-1))

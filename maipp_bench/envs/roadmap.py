@@ -1,0 +1,73 @@
+"""Probabilistic roadmap (PRM): nodes, k-NN action slots, symmetrised edges, shortest paths.
+
+Node 0 is the shared start node; nodes 1..n are uniform on [0, 1]^2 (paper Sec. IV-A).
+An agent's action picks one of the k nearest neighbours of its node (a "slot"); routing
+and planners use the symmetrised k-NN graph and its all-pairs shortest paths, computed
+lazily because no step of the environment needs them.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import tensorclass
+
+from maipp_bench.envs import rng
+
+_TAG_START, _TAG_NODES = 1, 2
+
+
+@tensorclass
+class Roadmap:
+    """A batch of roadmaps (leading dim: envs)."""
+
+    nodes: torch.Tensor  # [E, N, 2] float64, node 0 = start
+    node_valid: torch.Tensor  # [E, N] bool: False for pruned (removed) nodes
+    neighbors: torch.Tensor  # [E, N, k] int64: slot -> node index
+    neighbor_dist: torch.Tensor  # [E, N, k] float64 edge lengths
+    neighbor_valid: torch.Tensor  # [E, N, k] bool: slot exists
+
+    def adjacency(self) -> torch.Tensor:
+        """Symmetrised weighted adjacency ``[E, N, N]`` (inf where no edge)."""
+        e, n, _ = self.neighbors.shape
+        w = torch.full((e, n, n), torch.inf, dtype=self.neighbor_dist.dtype,
+                       device=self.nodes.device)
+        dist = torch.where(self.neighbor_valid, self.neighbor_dist, torch.inf)
+        w.scatter_reduce_(-1, self.neighbors, dist, reduce="amin")
+        w = torch.minimum(w, w.transpose(-1, -2))
+        w.diagonal(dim1=-2, dim2=-1).zero_()
+        return w
+
+    def shortest_paths(self) -> torch.Tensor:
+        """All-pairs shortest path lengths ``[E, N, N]`` (Floyd-Warshall, batched)."""
+        d = self.adjacency()
+        for k in range(d.shape[-1]):
+            torch.minimum(d, d[..., :, k : k + 1] + d[..., k : k + 1, :], out=d)
+        return d
+
+
+def build_roadmap(
+    trial_key: torch.Tensor,
+    n_nodes: int,
+    k: int,
+    node_filter=None,
+) -> Roadmap:
+    """Sample E roadmaps. ``node_filter(nodes [E, N, 2]) -> bool [E, N]`` removes nodes
+    (used to prune risky nodes for risk-unaware baselines); the start node always stays."""
+    e, device = trial_key.shape[0], trial_key.device
+    start = rng.uniform(rng.derive(trial_key, _TAG_START), (1, 2))
+    others = rng.uniform(rng.derive(trial_key, _TAG_NODES), (n_nodes, 2))
+    nodes = torch.cat([start, others], dim=1)  # [E, N, 2]
+    valid = torch.ones(nodes.shape[:2], dtype=torch.bool, device=device)
+    if node_filter is not None:
+        valid = node_filter(nodes)
+        valid[:, 0] = True
+    diff = nodes.unsqueeze(2) - nodes.unsqueeze(1)
+    dist = torch.sqrt((diff * diff).sum(-1))  # [E, N, N]
+    eye = torch.eye(nodes.shape[1], dtype=torch.bool, device=device)
+    blocked = eye.unsqueeze(0) | ~valid.unsqueeze(1)
+    dist = dist.masked_fill(blocked, torch.inf)
+    nbr_dist, nbr = torch.topk(dist, k, dim=-1, largest=False, sorted=True)
+    return Roadmap(
+        nodes=nodes, node_valid=valid, neighbors=nbr, neighbor_dist=nbr_dist,
+        neighbor_valid=torch.isfinite(nbr_dist), batch_size=[e],
+    )
