@@ -612,8 +612,12 @@ class MAIPPEnv(EnvBase):
         return self._state
 
     @property
-    def state(self) -> EpisodeState:
-        """The live episode state (world, roadmap, beliefs, agents) of every env."""
+    def episode(self) -> EpisodeState:
+        """The live episode state (world, roadmap, beliefs, agents) of every env.
+
+        ``episode.belief[:, g]`` is belief ``g``; agent ``a`` plans on
+        ``agent_belief_index[a]`` and the last belief is the team's (all measurements).
+        """
         return self._require_state()
 
     @property
@@ -635,11 +639,8 @@ class MAIPPEnv(EnvBase):
         if not 0 <= env_index < self.n_envs:
             raise IndexError(f"env_index must be in [0, {self.n_envs}), got {env_index}")
         i, n = env_index, int(st.meas_count[env_index])
-        known = st.known[i, :, :n]
-        if self.config.shared_belief:
-            known = torch.ones_like(known)
-        else:  # the agent's belief holds what it knew at its last decision event
-            known = st.in_belief[i, :-1, :n]
+        # An agent's belief holds what it knew at its last decision event.
+        known = st.in_belief[i, self._agent_belief, :n]
         trajs = [st.traj[i, a, : int(st.traj_len[i, a])].cpu() for a in range(self.n_agents)]
         nodes = st.roadmap.nodes[i].cpu()
         return {
