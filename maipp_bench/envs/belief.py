@@ -4,15 +4,20 @@ A belief is the GP posterior (fixed hyperparameters, zero prior mean) given the
 measurements ``X, Y`` seen so far, evaluated at a fixed query set (the evaluation grid
 and the roadmap nodes). We cache
 
-* ``factor``  L, the lower Cholesky factor of K(X, X) + s^2 I,
+* ``factor_inv``  L^-1, the inverse of the lower Cholesky factor L of K(X, X) + s^2 I,
 * ``cross``   V = L^-1 K(X, Q), the whitened cross-covariances with the query set,
 * ``whitened`` z = L^-1 Y (one column per channel: interest signal, risk),
 * ``mu`` = V^T z and ``sigma2`` = diag(K(Q,Q)) - colsum(V * V),
 
-so adding a measurement x costs O(n^2 + nQ): b = L^-1 k(X, x) (triangular solve),
-d = sqrt(k(x,x) + s^2 - |b|^2), and new rows L[n] = [b, d], V[n] = (k(x, Q) - b^T V) / d,
-z[n] = (y - b^T z) / d; the mean and variance are updated by rank one. Both channels share
-X, hence L and V: the interest and risk GPs cost one factorisation.
+so adding a measurement x costs O(n^2 + nQ): b = L^-1 k(X, x), d = sqrt(k(x,x) + s^2 -
+|b|^2), and new rows L^-1[n] = [-b^T L^-1 / d, 1 / d], V[n] = (k(x, Q) - b^T V) / d,
+z[n] = (y - b^T z) / d; the mean and variance are updated by rank one. P points at once
+are the same with d replaced by the Cholesky factor of their P x P Schur complement.
+Both channels share X, hence L and V: the interest and risk GPs cost one factorisation.
+
+We keep L^-1 rather than L so that every batched operation is a matrix product: batched
+LAPACK calls on many tiny matrices (triangular solves, Cholesky) are slow on CPU and
+degrade badly when threads are contended; the P x P blocks are factorised by hand.
 
 Buffers have a fixed capacity (unused rows of L are the identity, of V and z zero), so
 every operation is batched over envs and agents with masks, never a Python loop over them.
@@ -59,7 +64,7 @@ class GPBelief:
     """
 
     points: torch.Tensor  # [*B, n, 2]
-    factor: torch.Tensor  # [*B, n, n]
+    factor_inv: torch.Tensor  # [*B, n, n] L^-1 (identity on unused rows)
     cross: torch.Tensor  # [*B, n, Q]
     whitened: torch.Tensor  # [*B, n, C]
     mu: torch.Tensor  # [*B, Q, C] posterior mean
@@ -83,7 +88,7 @@ class GPBelief:
         eye = torch.eye(capacity, **kw).expand(*b, capacity, capacity).clone()
         return cls(
             points=torch.zeros(*b, capacity, 2, **kw),
-            factor=eye,
+            factor_inv=eye,
             cross=torch.zeros(*b, capacity, n_query, **kw),
             whitened=torch.zeros(*b, capacity, n_channels, **kw),
             mu=torch.zeros(*b, n_query, n_channels, **kw),
@@ -94,20 +99,7 @@ class GPBelief:
 
     @property
     def capacity(self) -> int:
-        return self.factor.shape[-1]
-
-    def reset_(self, mask: torch.Tensor, prior_variance: float) -> None:
-        """Forget all measurements of the beliefs selected by ``mask [*B]``."""
-        cap = self.capacity
-        eye = torch.eye(cap, dtype=self.factor.dtype, device=self.factor.device)
-        m = mask.unsqueeze(-1)
-        self.factor.copy_(torch.where(m.unsqueeze(-1), eye, self.factor))
-        self.cross.masked_fill_(m.unsqueeze(-1), 0.0)
-        self.whitened.masked_fill_(m.unsqueeze(-1), 0.0)
-        self.points.masked_fill_(m.unsqueeze(-1), 0.0)
-        self.mu.masked_fill_(m.unsqueeze(-1), 0.0)
-        self.sigma2.masked_fill_(m, prior_variance)
-        self.count.masked_fill_(mask, 0)
+        return self.factor_inv.shape[-1]
 
     # ------------------------------------------------------------------ updates
     def add(
@@ -137,7 +129,7 @@ class GPBelief:
         idx = sel.nonzero().squeeze(-1)
         if idx.numel() == 0:
             return
-        dtype, dev = self.factor.dtype, self.factor.device
+        dtype, dev = self.factor_inv.dtype, self.factor_inv.device
         fm = flat[idx]
         n, n_new = self.count.reshape(-1)[idx], fm.sum(-1)
         if bool((n + n_new > cap).any()):
@@ -148,39 +140,47 @@ class GPBelief:
         xs = x.reshape(-1, p, 2)[idx].gather(-2, order.unsqueeze(-1).expand(-1, -1, 2))
         ys = y.reshape(-1, p, nc)[idx].gather(-2, order.unsqueeze(-1).expand(-1, -1, nc))
         xs, ys = xs.to(dtype), ys.to(dtype)
+        # Work on the used prefix only: rows >= h are identity/zero in every selected belief.
+        h = int(n.max())
+        w_new = min(cap, h + p)  # columns the new rows of L^-1 can touch
         all_sel = idx.numel() == sel.numel()
-        L = self.factor.reshape(-1, cap, cap)[idx]
-        X = self.points.reshape(-1, cap, 2)[idx]
-        Z = self.whitened.reshape(-1, cap, nc)[idx]
+        Li = self.factor_inv.reshape(-1, cap, cap)[idx, :h, :h]
+        X = self.points.reshape(-1, cap, 2)[idx, :h]
+        Z = self.whitened.reshape(-1, cap, nc)[idx, :h]
         V = self.cross.reshape(-1, cap, nq)
-        V = V if all_sel else V[idx]  # avoid copying V when every belief takes points
+        V = V[:, :h] if all_sel else V[idx, :h]  # a view when every belief takes points
         q = query.expand(*self.batch_size, nq, 2).reshape(-1, nq, 2)
         q = (q if all_sel else q[idx]).to(dtype)
-        slots = torch.arange(cap, device=dev)
-        used = slots < n.unsqueeze(-1)  # [S, cap]
+        used = torch.arange(h, device=dev) < n.unsqueeze(-1)  # [S, h]
 
-        kxf = prior.cov(X, xs) * (used.unsqueeze(-1) & fm.unsqueeze(-2))  # [S, cap, P]
-        bm = torch.linalg.solve_triangular(L, kxf, upper=False)
-        bmt = bm.transpose(-1, -2)  # [S, P, cap]
+        kxf = prior.cov(X, xs) * (used.unsqueeze(-1) & fm.unsqueeze(-2))  # [S, h, P]
+        bm = Li @ kxf  # B = L^-1 K(X, F)
+        bmt = bm.transpose(-1, -2)  # [S, P, h]
         eye = torch.eye(p, dtype=dtype, device=dev)
         s = prior.cov(xs, xs) + prior.noise * eye - bmt @ bm
         s = torch.where(fm.unsqueeze(-1) & fm.unsqueeze(-2), s, eye)  # padding: identity
-        ls = torch.linalg.cholesky(s)  # [S, P, P]
+        ls_inv = cholesky_inverse_small(s)  # [S, P, P]
         w = (prior.cov(xs, q) - bmt @ V) * fm.unsqueeze(-1)  # [S, P, Q]
-        v_new = torch.linalg.solve_triangular(ls, w, upper=False)
-        z_new = torch.linalg.solve_triangular(ls, (ys - bmt @ Z) * fm.unsqueeze(-1), upper=False)
+        v_new = ls_inv @ w
+        z_new = ls_inv @ ((ys - bmt @ Z) * fm.unsqueeze(-1))
 
-        # New factor rows n+i: [B^T (old columns), Ls (columns n .. n+P-1)].
-        j = (slots.view(1, 1, cap) - n.view(-1, 1, 1)).expand(-1, p, cap)
-        rows = torch.where((j >= 0) & (j < p), ls.gather(-1, j.clamp(0, p - 1)), bmt)
+        # New rows n+i of L^-1: [-Ls^-1 B^T L^-1 (old columns), Ls^-1 (columns n..n+P-1)].
+        old = torch.nn.functional.pad(-(ls_inv @ (bmt @ Li)), (0, w_new - h))  # 0 at cols >= n
+        j = (torch.arange(w_new, device=dev).view(1, 1, -1) - n.view(-1, 1, 1)).expand(-1, p, -1)
+        rows = torch.where((j >= 0) & (j < p), ls_inv.gather(-1, j.clamp(0, p - 1)), old)
         bi, pi = fm.nonzero(as_tuple=True)
         target, dst = n[bi] + pi, idx[bi]
-        self.factor.view(-1, cap, cap)[dst, target] = rows[bi, pi]
+        self.factor_inv.view(-1, cap, cap)[dst, target, :w_new] = rows[bi, pi]
         self.points.view(-1, cap, 2)[dst, target] = xs[bi, pi]
         self.cross.view(-1, cap, nq)[dst, target] = v_new[bi, pi]
         self.whitened.view(-1, cap, nc)[dst, target] = z_new[bi, pi]
-        self.mu.view(-1, nq, nc)[idx] += v_new.transpose(-1, -2) @ z_new
-        self.sigma2.view(-1, nq)[idx] -= (v_new * v_new).sum(-2)
+        d_mu, d_var = v_new.transpose(-1, -2) @ z_new, (v_new * v_new).sum(-2)
+        if all_sel:
+            self.mu.view(-1, nq, nc).add_(d_mu)
+            self.sigma2.view(-1, nq).sub_(d_var)
+        else:
+            self.mu.view(-1, nq, nc)[idx] += d_mu
+            self.sigma2.view(-1, nq)[idx] -= d_var
         self.count.view(-1)[idx] += n_new
 
     # ------------------------------------------------------------------ queries
@@ -208,7 +208,7 @@ class GPBelief:
         """
         cap, nq = self.capacity, self.sigma2.shape[-1]
         qs = nq if n_query is None else n_query
-        dtype = self.factor.dtype
+        dtype = self.factor_inv.dtype
         points = points.to(dtype)
         p = points.shape[-2]
         if mask is None:
@@ -217,17 +217,43 @@ class GPBelief:
         # B = L^-1 K(X, F) for every candidate set: [*B, C, n, P]
         kxf = prior.cov(self.points.unsqueeze(-3), points) * used[..., None, :, None]
         kxf = kxf * mask.unsqueeze(-2)
-        bm = torch.linalg.solve_triangular(self.factor.unsqueeze(-3), kxf, upper=False)
+        bm = self.factor_inv.unsqueeze(-3) @ kxf
         eye = torch.eye(p, dtype=dtype, device=points.device)
         pair = mask.unsqueeze(-1) & mask.unsqueeze(-2)
         s = prior.cov(points, points) + prior.noise * eye - bm.transpose(-1, -2) @ bm
         s = torch.where(pair, s, eye)
-        ls = torch.linalg.cholesky(s)
+        ls_inv = cholesky_inverse_small(s)
         q = query[..., :qs, :].to(dtype).unsqueeze(-3)  # [*B, 1, Qs, 2]
         w = prior.cov(points, q) - bm.transpose(-1, -2) @ self.cross[..., :qs].unsqueeze(-3)
         w = w * mask.unsqueeze(-1)
-        u = torch.linalg.solve_triangular(ls, w, upper=False)
+        u = ls_inv @ w
         return self.sigma2[..., :qs].unsqueeze(-2) - (u * u).sum(-2)
+
+
+def cholesky_inverse_small(s: torch.Tensor) -> torch.Tensor:
+    """Inverse of the lower Cholesky factor of small SPD matrices ``s [..., P, P]``.
+
+    Written as P column steps of batched products (P is the number of points added at
+    once, a handful), which is much faster than batched LAPACK on many tiny matrices.
+    """
+    p = s.shape[-1]
+    tiny = torch.finfo(s.dtype).tiny
+    lo = torch.zeros_like(s)
+    for j in range(p):
+        row = lo[..., j, :j]
+        d = torch.sqrt(torch.clamp(s[..., j, j] - (row * row).sum(-1), min=tiny))
+        lo[..., j, j] = d
+        if j + 1 < p:
+            below = s[..., j + 1 :, j] - (lo[..., j + 1 :, :j] @ row.unsqueeze(-1)).squeeze(-1)
+            lo[..., j + 1 :, j] = below / d.unsqueeze(-1)
+    inv = torch.zeros_like(s)
+    for i in range(p):
+        diag = 1.0 / lo[..., i, i]
+        inv[..., i, i] = diag
+        if i:
+            acc = (lo[..., i, :i].unsqueeze(-2) @ inv[..., :i, :i]).squeeze(-2)
+            inv[..., i, :i] = -acc * diag.unsqueeze(-1)
+    return inv
 
 
 def interest_trace(

@@ -549,7 +549,10 @@ class MAIPPEnv(EnvBase):
         mu = self._agent_view(st.belief.mu[:, :, g2:])  # [E, m, N, 2]
         sd = torch.sqrt(self._agent_view(st.belief.sigma2[:, :, g2:]).clamp_min(0))
         ucb = mu[..., 1] + cfg.risk_beta * sd if cfg.risk_enabled else torch.zeros_like(sd)
-        intent = intent_feature(nodes, st.recv_mean, st.recv_cov, st.recv_valid).to(dt)
+        if bool(st.recv_valid.any()):
+            intent = intent_feature(nodes, st.recv_mean, st.recv_cov, st.recv_valid).to(dt)
+        else:  # nobody has broadcast an intent yet
+            intent = torch.zeros_like(sd)
         xy = nodes.to(dt).unsqueeze(1).expand(e, m, n, 2)
         aoi = st.node_in_aoi.to(dt).unsqueeze(1).expand(e, m, n)
         feats = torch.cat([xy, torch.stack([mu[..., 0], sd, ucb, intent, aoi], -1)], -1)

@@ -61,12 +61,16 @@ def build_roadmap(
     if node_filter is not None:
         valid = node_filter(nodes)
         valid[:, 0] = True
-    diff = nodes.unsqueeze(2) - nodes.unsqueeze(1)
-    dist = torch.sqrt((diff * diff).sum(-1))  # [E, N, N]
+    # Rank by cdist (fast, tiny rounding), then measure the chosen edges exactly.
+    dist = torch.cdist(nodes, nodes)  # [E, N, N]
     eye = torch.eye(nodes.shape[1], dtype=torch.bool, device=device)
     blocked = eye.unsqueeze(0) | ~valid.unsqueeze(1)
-    dist = dist.masked_fill(blocked, torch.inf)
-    nbr_dist, nbr = torch.topk(dist, k, dim=-1, largest=False, sorted=True)
+    dist = dist.masked_fill_(blocked, torch.inf)
+    rank_dist, nbr = torch.topk(dist, k, dim=-1, largest=False, sorted=True)
+    diff = nodes.unsqueeze(2) - nodes.gather(1, nbr.view(e, -1, 1).expand(-1, -1, 2)).view(
+        e, -1, k, 2)
+    nbr_dist = torch.where(torch.isfinite(rank_dist), torch.sqrt((diff * diff).sum(-1)),
+                           torch.inf)
     return Roadmap(
         nodes=nodes, node_valid=valid, neighbors=nbr, neighbor_dist=nbr_dist,
         neighbor_valid=torch.isfinite(nbr_dist), batch_size=[e],
