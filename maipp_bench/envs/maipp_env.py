@@ -251,7 +251,7 @@ class MAIPPEnv(EnvBase):
                                   cfg.prior_variance, cfg.torch_dtype, dev),
             in_belief=torch.zeros(e, self.n_beliefs, big_m, **b),
             query=query,
-            grid_truth=world.signal(grid, cfg.risk_mix_lambda),
+            grid_truth=world.grid_signal(cfg.grid_size, cfg.risk_mix_lambda),
             grid_weight=grid_weight,
             node_risk=world.risk(roadmap.nodes),
             node_in_aoi=world.in_aoi(roadmap.nodes),

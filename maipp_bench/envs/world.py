@@ -62,6 +62,16 @@ class World:
         """The interest signal the agents measure: y_mix = y_it (1 - lambda y_rk)."""
         return self.interest(points) * (1.0 - mix_lambda * self.risk(points))
 
+    def grid_signal(self, grid_size: int, mix_lambda: float) -> torch.Tensor:
+        """The interest signal on the ``G x G`` evaluation grid -> ``[E, G*G]`` (fast path)."""
+        lin = torch.linspace(0.0, 1.0, grid_size, dtype=torch.float64,
+                             device=self.interest_norm.device)
+        it = _grid_mixture(lin, self.interest_centres, self.interest_stds, self.interest_valid)
+        rk = _grid_mixture(lin, self.risk_centres, self.risk_stds, self.risk_valid)
+        it = it / self.interest_norm.unsqueeze(-1)
+        rk = rk / self.risk_norm.unsqueeze(-1)
+        return it * (1.0 - mix_lambda * rk)
+
     # ---------------------------------------------------------------- AOI and evidence
     @property
     def evidence(self) -> torch.Tensor:
@@ -80,6 +90,16 @@ def _mixture(points, centres, stds, valid):
     return (dens * valid.unsqueeze(-2)).sum(-1)
 
 
+def _grid_mixture(lin, centres, stds, valid):
+    """``_mixture`` on the grid ``lin x lin``, using that axis-aligned bumps are separable:
+    O(K G) exponentials instead of O(K G^2)."""
+    gx = torch.exp(-0.5 * ((lin - centres[..., 0:1]) / stds[..., 0:1]) ** 2)  # [E, K, G]
+    gy = torch.exp(-0.5 * ((lin - centres[..., 1:2]) / stds[..., 1:2]) ** 2)
+    w = valid / (2.0 * math.pi * stds.prod(-1))  # [E, K]
+    # value[y, x] = sum_k w_k gy[k, y] gx[k, x]  (x varies fastest, as in grid_points)
+    return torch.einsum("ek,eky,ekx->eyx", w, gy, gx).reshape(centres.shape[0], -1)
+
+
 def _bumps(key, n_min, n_max, std_min, std_max, tags):
     tag_n, tag_c, tag_s = tags
     count = rng.randint(rng.derive(key, tag_n), n_min, n_max)  # [E]
@@ -92,7 +112,7 @@ def _bumps(key, n_min, n_max, std_min, std_max, tags):
 def generate_world(cfg: MAIPPConfig, instance_key: torch.Tensor) -> World:
     """Generate ``len(instance_key)`` worlds (float64, on the keys' device)."""
     e, device = instance_key.shape[0], instance_key.device
-    grid = grid_points(cfg.grid_size, torch.float64, device).expand(e, -1, -1)
+    lin = torch.linspace(0.0, 1.0, cfg.grid_size, dtype=torch.float64, device=device)
     ic, istd, ivalid = _bumps(
         instance_key, cfg.interest_bumps_min, cfg.interest_bumps_max,
         cfg.bump_std_min, cfg.bump_std_max,
@@ -105,8 +125,8 @@ def generate_world(cfg: MAIPPConfig, instance_key: torch.Tensor) -> World:
     )
     if not cfg.risk_enabled:
         rvalid = torch.zeros_like(rvalid)
-    inorm = _mixture(grid, ic, istd, ivalid).amax(-1)
-    rnorm = _mixture(grid, rc, rstd, rvalid).amax(-1)
+    inorm = _grid_mixture(lin, ic, istd, ivalid).amax(-1)
+    rnorm = _grid_mixture(lin, rc, rstd, rvalid).amax(-1)
     rnorm = torch.where(rnorm > 0, rnorm, torch.ones_like(rnorm))
     aoi_low, aoi_high = _place_aoi(cfg, instance_key, ic, ivalid)
     return World(
