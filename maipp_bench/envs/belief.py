@@ -101,6 +101,20 @@ class GPBelief:
     def capacity(self) -> int:
         return self.factor_inv.shape[-1]
 
+    def grown(self, extra: int) -> GPBelief:
+        """A copy with room for ``extra`` more measurements (e.g. for fantasy points)."""
+        cap = self.capacity
+        pad = torch.nn.functional.pad
+        inv = pad(self.factor_inv, (0, extra, 0, extra))
+        idx = torch.arange(cap, cap + extra, device=inv.device)
+        inv[..., idx, idx] = 1.0
+        return GPBelief(
+            points=pad(self.points, (0, 0, 0, extra)), factor_inv=inv,
+            cross=pad(self.cross, (0, 0, 0, extra)), whitened=pad(self.whitened, (0, 0, 0, extra)),
+            mu=self.mu.clone(), sigma2=self.sigma2.clone(), count=self.count.clone(),
+            batch_size=self.batch_size,
+        )
+
     # ------------------------------------------------------------------ updates
     def add(
         self,
@@ -124,6 +138,8 @@ class GPBelief:
         """
         cap, nq, nc = self.capacity, self.sigma2.shape[-1], self.whitened.shape[-1]
         p = x.shape[-2]
+        if p == 0:
+            return
         flat = mask.reshape(-1, p)
         sel = flat.any(-1)
         idx = sel.nonzero().squeeze(-1)
@@ -209,25 +225,36 @@ class GPBelief:
         cap, nq = self.capacity, self.sigma2.shape[-1]
         qs = nq if n_query is None else n_query
         dtype = self.factor_inv.dtype
-        points = points.to(dtype)
-        p = points.shape[-2]
+        *cand_shape, p, _ = points.shape
+        if p == 0:
+            return self.sigma2[..., :qs].unsqueeze(-2).expand(*cand_shape, qs).clone()
         if mask is None:
             mask = torch.ones(points.shape[:-1], dtype=torch.bool, device=points.device)
-        used = torch.arange(cap, device=self.count.device) < self.count.unsqueeze(-1)
-        # B = L^-1 K(X, F) for every candidate set: [*B, C, n, P]
-        kxf = prior.cov(self.points.unsqueeze(-3), points) * used[..., None, :, None]
-        kxf = kxf * mask.unsqueeze(-2)
-        bm = self.factor_inv.unsqueeze(-3) @ kxf
-        eye = torch.eye(p, dtype=dtype, device=points.device)
-        pair = mask.unsqueeze(-1) & mask.unsqueeze(-2)
-        s = prior.cov(points, points) + prior.noise * eye - bm.transpose(-1, -2) @ bm
-        s = torch.where(pair, s, eye)
-        ls_inv = cholesky_inverse_small(s)
-        q = query[..., :qs, :].to(dtype).unsqueeze(-3)  # [*B, 1, Qs, 2]
-        w = prior.cov(points, q) - bm.transpose(-1, -2) @ self.cross[..., :qs].unsqueeze(-3)
-        w = w * mask.unsqueeze(-1)
-        u = ls_inv @ w
-        return self.sigma2[..., :qs].unsqueeze(-2) - (u * u).sum(-2)
+        c = cand_shape[-1]
+        bshape = tuple(self.batch_size)
+        # Fold the candidates into the columns so V and L^-1 are never broadcast (copied).
+        pts = points.to(dtype).reshape(-1, c * p, 2)
+        msk = mask.reshape(-1, c * p)
+        h = max(int(self.count.max()), 1)  # rows >= h are unused in every belief
+        li = self.factor_inv.reshape(-1, cap, cap)[:, :h, :h]
+        used = torch.arange(h, device=msk.device) < self.count.reshape(-1, 1)
+        kxf = prior.cov(self.points.reshape(-1, cap, 2)[:, :h], pts)
+        kxf = kxf * (used.unsqueeze(-1) & msk.unsqueeze(-2))  # [B, h, C*P]
+        bm = li @ kxf
+        bmt = bm.transpose(-1, -2)  # [B, C*P, h]
+        b4 = bmt.reshape(-1, c, p, h)
+        p4 = pts.reshape(-1, c, p, 2)
+        m4 = msk.reshape(-1, c, p)
+        eye = torch.eye(p, dtype=dtype, device=pts.device)
+        sch = prior.cov(p4, p4) + prior.noise * eye - b4 @ b4.transpose(-1, -2)
+        sch = torch.where(m4.unsqueeze(-1) & m4.unsqueeze(-2), sch, eye)
+        ls_inv = cholesky_inverse_small(sch)  # [B, C, P, P]
+        q = query[..., :qs, :].to(dtype).expand(*bshape, qs, 2).reshape(-1, qs, 2)
+        v = self.cross.reshape(-1, cap, nq)[:, :h, :qs]
+        w = (prior.cov(pts, q) - bmt @ v) * msk.unsqueeze(-1)  # [B, C*P, Qs]
+        u = ls_inv @ w.reshape(-1, c, p, qs)
+        var = self.sigma2.reshape(-1, nq)[:, None, :qs] - (u * u).sum(-2)
+        return var.reshape(*cand_shape, qs)
 
 
 def cholesky_inverse_small(s: torch.Tensor) -> torch.Tensor:

@@ -346,7 +346,9 @@ class MAIPPEnv(EnvBase):
         if mean is None and cov is None:
             return
         if mean is None or cov is None:
-            raise ValueError("('agents', 'intent') needs both 'mean' [E, m, 2] and 'cov' [E, m, 2, 2]")
+            raise ValueError(
+                "('agents', 'intent') needs both 'mean' [E, m, 2] and 'cov' [E, m, 2, 2]"
+            )
         e, m = self.n_envs, self.n_agents
         if mean.shape != (e, m, 2) or cov.shape != (e, m, 2, 2):
             raise ValueError(
@@ -502,8 +504,9 @@ class MAIPPEnv(EnvBase):
         take = order.sort(-1).values[..., :p] % missing.shape[-1]  # [E, G, p] in log order
         mask = torch.arange(p, device=self.device) < count.unsqueeze(-1)
         e, g = missing.shape[:2]
-        x = st.meas_x.unsqueeze(1).expand(e, g, -1, 2).gather(2, take.unsqueeze(-1).expand(-1, -1, -1, 2))
-        y = st.meas_y.unsqueeze(1).expand(e, g, -1, 2).gather(2, take.unsqueeze(-1).expand(-1, -1, -1, 2))
+        take2 = take.unsqueeze(-1).expand(-1, -1, -1, 2)
+        x = st.meas_x.unsqueeze(1).expand(e, g, -1, 2).gather(2, take2)
+        y = st.meas_y.unsqueeze(1).expand(e, g, -1, 2).gather(2, take2)
         st.belief.add(self.prior, st.query.unsqueeze(1), x, y, mask)
         st.in_belief = st.in_belief | missing
 
@@ -572,7 +575,8 @@ class MAIPPEnv(EnvBase):
         metrics = {
             "trace": st.trace.to(dt),
             "objective": st.objective.to(dt),
-            "rmse": torch.sqrt(((st.belief.mu[:, -1, :g2, 0] - st.grid_truth) ** 2).mean(-1)).to(dt),
+            "rmse": torch.sqrt(((st.belief.mu[:, -1, :g2, 0] - st.grid_truth) ** 2).mean(-1))
+            .to(dt),
             "distance": st.budget_used.to(dt),
             "time": st.time.to(dt),
             "evidence_inside": (found & st.evidence_in_aoi).sum(-1),
@@ -622,6 +626,19 @@ class MAIPPEnv(EnvBase):
         ``agent_belief_index[a]`` and the last belief is the team's (all measurements).
         """
         return self._require_state()
+
+    def agent_positions(self) -> torch.Tensor:
+        """Positions of every agent now, ``[E, m, 2]`` (float64)."""
+        return self._positions(self._require_state())
+
+    def in_contact(self) -> torch.Tensor:
+        """``[E, m, m]`` bool: agents in one communication component now (reflexive)."""
+        st = self._require_state()
+        if self.config.shared_belief:
+            return torch.ones(self.n_envs, self.n_agents, self.n_agents, dtype=torch.bool,
+                              device=self.device)
+        pos = self._positions(st)
+        return reachability(torch.cdist(pos, pos) <= self.config.comm_range)
 
     @property
     def agent_belief_index(self) -> torch.Tensor:

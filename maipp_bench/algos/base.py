@@ -1,0 +1,64 @@
+"""Planner policies: batched decision makers that read the env's belief through its API."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+
+from maipp_bench.envs import rng
+from maipp_bench.envs.dynamics import edge_points, sample_offsets
+from maipp_bench.envs.maipp_env import EpisodeState, MAIPPEnv
+
+
+class PlannerPolicy:
+    """Base of non-learned methods: ``policy(td)`` writes ``("agents", "action")``.
+
+    Args:
+        env: the batched env the policy acts in (it reads ``env.episode``).
+        seeds: ``[E]`` int64 method seeds, one per episode; all randomness of a policy is
+            keyed by (seed, step), so an episode's actions do not depend on the batch.
+    """
+
+    def __init__(self, env: MAIPPEnv, seeds: torch.Tensor) -> None:
+        self.env = env
+        self.keys = rng.derive(rng.seed_key(0x5EED, env.device), seeds.to(env.device))
+
+    def __call__(self, td: TensorDictBase) -> TensorDictBase:
+        td.set(("agents", "action"), self.act(self.env.episode))
+        return td
+
+    def act(self, st: EpisodeState) -> torch.Tensor:
+        """Slots ``[E, m]`` for the deciding agents (others are ignored by the env)."""
+        raise NotImplementedError
+
+    def uniforms(self, st: EpisodeState, shape: tuple[int, ...], tag: int = 0) -> torch.Tensor:
+        """Per-episode uniforms ``[E, *shape]`` keyed by (seed, step, tag)."""
+        return rng.uniform(rng.derive(self.keys, st.steps, tag), shape)
+
+
+def candidate_points(env: MAIPPEnv, st: EpisodeState) -> tuple[torch.Tensor, torch.Tensor]:
+    """Measurement points each agent would take on each of its neighbour edges.
+
+    Returns ``points [E, m, k, R, 2]`` and ``mask [E, m, k, R]`` (offsets carry each
+    agent's distance since its last measurement, exactly as the env measures).
+    """
+    nodes = st.roadmap.nodes
+    e, m, k = st.nbr.shape
+    since = st.since_sample.unsqueeze(-1).expand(e, m, k)
+    offsets, mask, _ = sample_offsets(since, st.nbr_len, env.config.sample_spacing)
+    src = nodes.gather(1, st.cur.unsqueeze(-1).expand(-1, -1, 2)).unsqueeze(2).expand(e, m, k, 2)
+    dst = nodes.gather(1, st.nbr.reshape(e, -1, 1).expand(-1, -1, 2)).view(e, m, k, 2)
+    return edge_points(src, dst, st.nbr_len, offsets), mask
+
+
+def committed_points(env: MAIPPEnv, st: EpisodeState) -> tuple[torch.Tensor, torch.Tensor]:
+    """Measurement points still ahead of each moving agent on its current edge.
+
+    Returns ``points [E, m, R, 2]`` and ``mask [E, m, R]`` (empty for resting agents).
+    """
+    nodes = st.roadmap.nodes
+    left = torch.where(st.edge_len > 0, st.edge_len - st.progress, 0.0)
+    offsets, mask, _ = sample_offsets(st.since_sample, left, env.config.sample_spacing)
+    src = nodes.gather(1, st.cur.unsqueeze(-1).expand(-1, -1, 2))
+    dst = nodes.gather(1, st.tgt.unsqueeze(-1).expand(-1, -1, 2))
+    return edge_points(src, dst, st.edge_len, st.progress.unsqueeze(-1) + offsets), mask

@@ -1,0 +1,84 @@
+"""``greedy``: myopic sequential greedy assignment (SGA) on fantasy measurements.
+
+Each deciding agent takes the neighbour whose edge gives the largest drop of Tr(P) per
+unit distance, measured on its own belief by fantasy measurements along the edge, after
+the measurements its teammates have already committed to: the rest of every moving
+teammate's edge (teammates it can communicate with) and the edges chosen by deciding
+agents ranked before it at this event (SGA order = agent index). No GP is refit.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from maipp_bench.algos.base import PlannerPolicy, candidate_points, committed_points
+from maipp_bench.algos.registry import register_policy
+from maipp_bench.envs.belief import interest_trace
+from maipp_bench.envs.maipp_env import EpisodeState, MAIPPEnv
+
+
+@register_policy("greedy")
+class GreedyPolicy(PlannerPolicy):
+    """Tr(P) drop per unit distance, one SGA round per deciding agent (batched over envs)."""
+
+    def __init__(self, env: MAIPPEnv, seeds: torch.Tensor, tie_break: float = 1e-9) -> None:
+        super().__init__(env, seeds)
+        self.tie_break = tie_break
+
+    def act(self, st: EpisodeState) -> torch.Tensor:
+        env, cfg = self.env, self.env.config
+        e, m, k = st.mask.shape
+        g2 = cfg.n_grid
+        ar = torch.arange(e, device=env.device)
+        cand, cand_mask = candidate_points(env, st)  # [E, m, k, R, 2]
+        held, held_mask = committed_points(env, st)  # [E, m, R', 2]
+        contact = env.in_contact()
+        action = torch.zeros(e, m, dtype=torch.int64, device=env.device)
+        rank = torch.cumsum(st.deciding.to(torch.int64), -1) - 1
+        noise = self.uniforms(st, (m, k))
+        # SGA is sequential by definition: one round per deciding agent, all envs at once.
+        for r in range(int(st.deciding.sum(-1).max()) if st.deciding.any() else 0):
+            who = st.deciding & (rank == r)
+            active = who.any(-1)
+            a = who.to(torch.int64).argmax(-1)  # [E]
+            belief = st.belief[ar, env.agent_belief_index[a]]
+            mu = belief.mu[:, :g2, 0]
+            # Condition a copy of the belief on the teammates' committed points this agent
+            # knows of (variances do not depend on values), then score its own edges.
+            known = contact[ar, a] & (torch.arange(m, device=env.device) != a.unsqueeze(-1))
+            team = held.flatten(1, 2)  # [E, m*R', 2]
+            team_mask = (held_mask & known.unsqueeze(-1)).flatten(1, 2)
+            zeros = torch.zeros(*team.shape[:-1], 2, dtype=mu.dtype, device=env.device)
+            belief = belief.grown(team.shape[1])
+            belief.add(env.prior, st.query, team, zeros, team_mask)
+            var = belief.fantasy_variance(env.prior, st.query, cand[ar, a], cand_mask[ar, a],
+                                          n_query=g2)
+            beta, th = cfg.interest_beta, cfg.interest_threshold
+            tr = interest_trace(mu.unsqueeze(1), var, beta, th)  # [E, k]
+            tr0 = interest_trace(mu, belief.sigma2[:, :g2], beta, th)  # [E]
+            length = st.nbr_len[ar, a].clamp_min(1e-9)
+            gain = (tr0.unsqueeze(-1) - tr).to(torch.float64) / length
+            score = gain + self.tie_break * noise[ar, a]
+            choice = torch.where(st.mask[ar, a], score, -torch.inf).argmax(-1)
+            action[ar[active], a[active]] = choice[active]
+            # Later agents condition on this agent's chosen edge.
+            chosen = cand[ar, a, choice]  # [E, R, 2]
+            chosen_mask = cand_mask[ar, a, choice] & active.unsqueeze(-1)
+            held, held_mask = _append(held, held_mask, a, chosen, chosen_mask)
+        return action
+
+
+def _append(held, held_mask, a, pts, mask):
+    """Add ``pts [E, R, 2]`` to agent ``a``'s committed points (padding as needed)."""
+    e, m, r0, _ = held.shape
+    r = max(r0, pts.shape[1])
+    held = torch.nn.functional.pad(held, (0, 0, 0, r - r0))
+    held_mask = torch.nn.functional.pad(held_mask, (0, r - r0))
+    pts = torch.nn.functional.pad(pts, (0, 0, 0, r - pts.shape[1]))
+    mask = torch.nn.functional.pad(mask, (0, r - mask.shape[1]))
+    sel = torch.zeros(e, m, dtype=torch.bool, device=held.device)
+    sel[torch.arange(e, device=held.device), a] = True
+    sel = sel & mask.any(-1, keepdim=True)
+    held = torch.where(sel[..., None, None], pts.unsqueeze(1), held)
+    held_mask = torch.where(sel[..., None], mask.unsqueeze(1), held_mask)
+    return held, held_mask

@@ -1,0 +1,78 @@
+"""One registry of methods: a policy class registered by name + one YAML per method.
+
+``maipp_bench/conf/method/<method>.yaml`` names the policy class, whether the method
+models risk (risk-unaware methods get the pruned roadmap, as in the paper) and its
+parameters. Adding a method is one module (the policy, decorated with
+:func:`register_policy`) and one YAML.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+METHOD_CONF_DIR = Path(__file__).resolve().parent.parent / "conf" / "method"
+POLICIES: dict[str, Callable[..., Any]] = {}
+
+
+def register_policy(name: str) -> Callable[[type], type]:
+    """Class decorator: make a policy class available to method YAMLs as ``policy: name``."""
+
+    def wrap(cls: type) -> type:
+        if name in POLICIES:
+            raise ValueError(f"policy {name!r} registered twice")
+        POLICIES[name] = cls
+        return cls
+
+    return wrap
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """A named, configured method as the evaluation protocol runs it."""
+
+    name: str
+    policy: str
+    models_risk: bool
+    learned: bool = False
+    params: dict[str, Any] = field(default_factory=dict)
+    description: str = ""
+
+    def build(self, env: Any, seeds: Any, **extra: Any) -> Any:
+        """Instantiate the policy for a batched env and per-episode method seeds."""
+        return POLICIES[self.policy](env, seeds, **{**self.params, **extra})
+
+
+def _load(path: Path) -> MethodSpec:
+    raw = yaml.safe_load(path.read_text()) or {}
+    known = {"policy", "models_risk", "learned", "params", "description"}
+    unknown = set(raw) - known
+    if unknown:
+        raise ValueError(f"{path}: unknown keys {sorted(unknown)}; allowed: {sorted(known)}")
+    return MethodSpec(name=path.stem, policy=raw["policy"], models_risk=bool(raw["models_risk"]),
+                      learned=bool(raw.get("learned", False)), params=dict(raw.get("params") or {}),
+                      description=str(raw.get("description", "")))
+
+
+def method_names() -> list[str]:
+    """Every method with a YAML whose policy class is registered."""
+    return sorted(p.stem for p in METHOD_CONF_DIR.glob("*.yaml") if _load(p).policy in POLICIES)
+
+
+def get_method(name: str) -> MethodSpec:
+    """The method called ``name``; unknown names get an error listing the valid ones."""
+    path = METHOD_CONF_DIR / f"{name}.yaml"
+    valid = method_names()
+    if not path.exists():
+        raise ValueError(f"unknown method {name!r}; valid methods: {valid}")
+    spec = _load(path)
+    if spec.policy not in POLICIES:
+        raise ValueError(
+            f"method {name!r} needs policy {spec.policy!r}, which is not registered; "
+            f"valid methods: {valid}"
+        )
+    return spec

@@ -1,0 +1,135 @@
+"""``python -m maipp_bench.eval --suite risk_aware``: score methods under the protocol.
+
+Every (method, setting) is run on the suite's instances x trials, one chunk (a trial over
+all instances, batched in one env) at a time; each finished chunk is stored at once, so an
+interrupted run loses at most one chunk and a rerun continues where it stopped (a finished
+suite recomputes nothing). The leaderboard (JSON, markdown, PNG) is then rebuilt from the
+stored episodes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shlex
+import sys
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from maipp_bench import algos
+from maipp_bench.protocol import leaderboard
+from maipp_bench.protocol.protocol import load_protocol
+from maipp_bench.protocol.runner import run_chunk
+from maipp_bench.protocol.store import ResultStore
+
+# Test hook: exit hard (as if killed) after this many stored chunks.
+_STOP_AFTER_ENV = "MAIPP_EVAL_STOP_AFTER_CHUNKS"
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="python -m maipp_bench.eval", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--suite", required=True, help="suite name of the protocol (e.g. risk_aware)")
+    p.add_argument("--methods", nargs="+", help="methods to run (default: the suite's "
+                   "methods that are available here)")
+    p.add_argument("--budgets", nargs="+", type=float, help="only settings with these budgets")
+    p.add_argument("--episodes", type=int, help="quick subset: this many episodes per "
+                   "setting (stored and reported apart from full runs)")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--out", default="results", help="directory of per-episode results")
+    p.add_argument("--leaderboards", default="leaderboards",
+                   help="directory of leaderboards (full runs only; subsets go under --out)")
+    p.add_argument("--protocol-version", type=int, default=1)
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    args = parse_args(argv)
+    protocol = load_protocol(args.protocol_version)
+    try:
+        suite = protocol.suite(args.suite)
+    except ValueError as err:
+        raise SystemExit(f"error: {err}") from None
+    available = algos.method_names()
+    if args.methods:
+        methods = list(args.methods)
+        for name in methods:
+            try:
+                algos.get_method(name)
+            except ValueError as err:
+                raise SystemExit(f"error: {err}") from None
+    else:
+        methods = [m for m in suite.methods if m in available]
+        missing = [m for m in suite.methods if m not in available]
+        if missing:
+            print(f"note: suite methods not available in this build, skipped: {missing}",
+                  file=sys.stderr)
+    settings = list(suite.settings)
+    if args.budgets:
+        budgets = set(args.budgets)
+        settings = [s for s in settings if suite.env_config(s).budget in budgets]
+        if not settings:
+            raise SystemExit(f"error: no setting of suite {suite.name!r} has budget in "
+                             f"{sorted(budgets)}")
+    instances, trials = list(suite.instance_seeds), list(suite.trial_seeds)
+    subset = None
+    out_root = Path(args.out)
+    if args.episodes is not None:
+        if not 1 <= args.episodes <= suite.n_episodes:
+            raise SystemExit(f"error: --episodes must be in [1, {suite.n_episodes}]")
+        subset = args.episodes
+        # Trial-major order: the first trials over (up to) all instances.
+        per_trial = min(len(instances), subset)
+        instances = instances[:per_trial]
+        trials = trials[: -(-subset // per_trial)]
+        out_root = out_root / f"subset-{subset}"
+    store = ResultStore(out_root, suite.name)
+
+    chunks = []
+    for method in methods:
+        done = store.done(method)
+        for setting in settings:
+            for t_idx, trial in enumerate(trials):
+                insts = instances
+                if subset is not None:
+                    left = subset - t_idx * len(instances)
+                    insts = instances[: max(0, min(len(instances), left))]
+                if insts and not all((setting.key, i, trial) in done for i in insts):
+                    chunks.append((method, setting, trial, insts))
+    total = sum(len(c[3]) for c in chunks)
+    stop_after = int(os.environ.get(_STOP_AFTER_ENV, "0") or 0)
+    bar = tqdm(total=total, unit="ep", desc=f"{suite.name}", disable=args.no_progress,
+               dynamic_ncols=True)
+    for n_chunks, (method, setting, trial, insts) in enumerate(chunks, start=1):
+        spec = algos.get_method(method)
+        bar.set_postfix_str(f"{method} {setting.key} trial {trial}")
+        cfg = suite.env_config(setting)
+        with torch.inference_mode():
+            rows = run_chunk(spec, cfg, insts, trial, device=args.device)
+        for r in rows:
+            r.update(method=method, setting=setting.key, protocol_version=protocol.version,
+                     protocol_sha256=protocol.sha256)
+        store.append(method, rows)
+        bar.update(len(rows))
+        if stop_after and n_chunks >= stop_after:
+            bar.close()
+            os._exit(3)  # simulate a hard kill (tests of resumption)
+    bar.close()
+
+    rows_by_method = {m: [r for r in store.rows(m) if r["protocol_sha256"] == protocol.sha256]
+                      for m in methods}
+    command = "python -m maipp_bench.eval " + " ".join(shlex.quote(a) for a in (argv or
+                                                                             sys.argv[1:]))
+    board = leaderboard.build(protocol, suite, settings, methods, rows_by_method, command,
+                              subset)
+    target = Path(args.leaderboards) if subset is None else out_root / "leaderboards"
+    paths = leaderboard.write(board, target)
+    print(f"wrote {', '.join(str(p) for p in paths)}")
+    return board
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,217 @@
+"""Aggregate stored episodes into ``<suite>.json`` / ``.md`` / ``.png`` (written atomically).
+
+The JSON is the data (with provenance: protocol version and hash, package version, git
+commit, date, machine, command); the markdown table and the plot are generated from it.
+Timing fields (``planning_s_per_episode``) are the only ones that vary between runs.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import os
+import platform
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+import maipp_bench
+from maipp_bench.protocol.protocol import Protocol, Setting, Suite, paper_results
+
+STATS = ("trace", "rmse", "evidence_inside", "evidence_outside", "evidence_total", "traps",
+         "distance", "steps")
+TIMING_FIELDS = ("planning_s_per_episode",)
+
+
+def git_commit() -> str:
+    try:
+        root = Path(maipp_bench.__file__).resolve().parent.parent
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
+                             text=True, timeout=10)
+        return out.stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def machine() -> dict[str, Any]:
+    import torch
+
+    return {"platform": platform.platform(), "processor": platform.processor() or "unknown",
+            "cpu_count": os.cpu_count(), "python": platform.python_version(),
+            "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def _num(v: Any) -> Any:
+    return "inf" if isinstance(v, float) and math.isinf(v) else v
+
+
+def aggregate(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Mean / std (ddof 1) / 95% CI half-width (normal approximation) of each statistic."""
+    out: dict[str, Any] = {"n": len(rows)}
+    for name in STATS:
+        x = np.array([r[name] for r in rows], dtype=np.float64)
+        std = float(x.std(ddof=1)) if len(x) > 1 else 0.0
+        out[f"{name}_mean"] = float(x.mean())
+        out[f"{name}_std"] = std
+        if name == "trace":
+            out["trace_ci95"] = 1.96 * std / math.sqrt(len(x))
+    out["planning_s_per_episode"] = float(np.mean([r["planning_s"] for r in rows]))
+    return out
+
+
+def _paper_lookup(suite: Suite) -> dict[tuple, tuple[float, float]]:
+    if not suite.paper_table:
+        return {}
+    table = paper_results()[suite.paper_table]
+    found = {}
+    for r in table["rows"]:
+        axes = tuple((a, math.inf if r[a] == "inf" else float(r[a])) for a in table["axes"])
+        found[(r["method"], axes)] = (r["mean"], r["std"])
+    return found
+
+
+def build(
+    protocol: Protocol,
+    suite: Suite,
+    settings: list[Setting],
+    methods: list[str],
+    rows_by_method: dict[str, list[dict[str, Any]]],
+    command: str,
+    subset: int | None,
+) -> dict[str, Any]:
+    """The leaderboard document: one row per (method, setting) with stored episodes."""
+    paper = _paper_lookup(suite)
+    board_rows = []
+    for method in methods:
+        by_setting: dict[str, list] = {}
+        for r in rows_by_method.get(method, []):
+            by_setting.setdefault(r["setting"], []).append(r)
+        for setting in settings:
+            eps = sorted(by_setting.get(setting.key, []), key=lambda r: (r["trial"], r["instance"]))
+            if not eps:
+                continue
+            row = {"method": method, "setting": setting.key,
+                   "axes": {k: _num(v) for k, v in setting.values}}
+            row.update(aggregate(eps))
+            key = (method, tuple((k, float(v)) for k, v in setting.values if k in
+                                 ("budget", "comm_range")))
+            ref = paper.get(key)
+            row["paper_trace_mean"], row["paper_trace_std"] = ref if ref else (None, None)
+            board_rows.append(row)
+    return {
+        "suite": suite.name,
+        "description": suite.description,
+        "protocol": {"version": protocol.version, "sha256": protocol.sha256},
+        "package_version": maipp_bench.__version__,
+        "git_commit": git_commit(),
+        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "machine": machine(),
+        "command": command,
+        "subset": None if subset is None else {"episodes_per_setting": subset},
+        "episodes_per_setting": suite.n_episodes if subset is None else subset,
+        "rows": board_rows,
+    }
+
+
+def write(board: dict[str, Any], directory: str | Path) -> list[Path]:
+    """Write ``<suite>.json``, ``<suite>.md`` and ``<suite>.png`` into ``directory``."""
+    directory = Path(directory)
+    name = board["suite"]
+    paths = [directory / f"{name}.json", directory / f"{name}.md", directory / f"{name}.png"]
+    _atomic_write(paths[0], (json.dumps(board, indent=2, sort_keys=False) + "\n").encode())
+    _atomic_write(paths[1], markdown(board).encode())
+    _atomic_write(paths[2], plot(board))
+    return paths
+
+
+def _fmt(x: float | None, digits: int = 2) -> str:
+    return "-" if x is None else f"{x:.{digits}f}"
+
+
+def markdown(board: dict[str, Any]) -> str:
+    lines = [
+        f"# Leaderboard: `{board['suite']}`",
+        "",
+        board["description"] + ".",
+        "",
+        f"Protocol v{board['protocol']['version']} (sha256 `{board['protocol']['sha256'][:12]}`),"
+        f" {board['episodes_per_setting']} episodes per row, maipp_bench "
+        f"{board['package_version']} at `{board['git_commit'][:10]}`, {board['date']}.",
+        f"Produced by `{board['command']}`; data in `{board['suite']}.json`.",
+        "",
+    ]
+    if board["subset"]:
+        lines += ["**Quick subset, not the full protocol: do not compare with full rows.**", ""]
+    lines += [
+        "Tr(P_f): final Tr(P) over the high-interest region (lower is better), mean ± std "
+        "[95% CI half-width]; paper: the paper's mean / std for the same method and setting.",
+        "",
+        "| method | setting | n | Tr(P_f) | paper | RMSE | evidence in / out / total | traps "
+        "| distance | plan s/ep |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in board["rows"]:
+        paper = ("-" if r["paper_trace_mean"] is None
+                 else f"{r['paper_trace_mean']:.2f} / {r['paper_trace_std']:.2f}")
+        lines.append(
+            f"| {r['method']} | {r['setting']} | {r['n']} | {r['trace_mean']:.2f} ± "
+            f"{r['trace_std']:.2f} [{r['trace_ci95']:.2f}] | {paper} | {r['rmse_mean']:.3f} | "
+            f"{r['evidence_inside_mean']:.2f} / {r['evidence_outside_mean']:.2f} / "
+            f"{r['evidence_total_mean']:.2f} | {r['traps_mean']:.2f} | {r['distance_mean']:.2f} "
+            f"| {r['planning_s_per_episode']:.3f} |"
+        )
+    lines += ["", f"![Tr(P_f) by setting]({board['suite']}.png)", ""]
+    return "\n".join(lines)
+
+
+def plot(board: dict[str, Any]) -> bytes:
+    """PNG bytes: Tr(P_f) against the last axis, one panel per value of the other axes."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = board["rows"]
+    axes_names = list(rows[0]["axes"]) if rows else ["budget"]
+    x_name, panel_names = axes_names[-1], axes_names[:-1]
+    panels = sorted({tuple(str(r["axes"][a]) for a in panel_names) for r in rows}) or [()]
+    fig, axs = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4), squeeze=False)
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    for ax, panel in zip(axs[0], panels):
+        for i, method in enumerate(methods):
+            sel = [r for r in rows if r["method"] == method
+                   and tuple(str(r["axes"][a]) for a in panel_names) == panel]
+            if not sel:
+                continue
+            xs = [float(r["axes"][x_name]) for r in sel]
+            color = f"C{i % 10}"
+            ax.errorbar(xs, [r["trace_mean"] for r in sel], yerr=[r["trace_ci95"] for r in sel],
+                        marker="o", capsize=3, label=method, color=color)
+            ref = [(x, r["paper_trace_mean"]) for x, r in zip(xs, sel)
+                   if r["paper_trace_mean"] is not None]
+            if ref:
+                ax.plot(*zip(*ref), linestyle="--", marker="x", color=color, alpha=0.6,
+                        label=f"{method} (paper)")
+        title = ", ".join(f"{a}={v}" for a, v in zip(panel_names, panel))
+        ax.set_title(title or board["suite"])
+        ax.set_xlabel(x_name)
+        ax.set_ylabel("Tr(P_f) (mean, 95% CI)")
+        ax.grid(alpha=0.3)
+    axs[0][-1].legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, metadata={"Software": None})
+    plt.close(fig)
+    return buf.getvalue()
