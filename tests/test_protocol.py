@@ -1,0 +1,131 @@
+"""The evaluation protocol end to end: smoke suite, reproducibility, resumption, errors."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from maipp_bench import algos
+from maipp_bench.eval import main as eval_main
+from maipp_bench.protocol import leaderboard, load_protocol
+from maipp_bench.protocol.protocol import PINNED_SHA256, PROTOCOL_DIR, file_sha256
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def _rows_without_timing(board: dict) -> list[dict]:
+    return [{k: v for k, v in r.items() if k not in leaderboard.TIMING_FIELDS}
+            for r in board["rows"]]
+
+
+def _run(tmp: Path, *extra: str) -> dict:
+    return eval_main(["--suite", "smoke", "--out", str(tmp / "res"), "--leaderboards",
+                      str(tmp / "lb"), "--no-progress", *extra])
+
+
+@pytest.fixture(scope="module")
+def smoke_board(tmp_path_factory) -> tuple[dict, Path]:
+    tmp = tmp_path_factory.mktemp("smoke")
+    return _run(tmp), tmp
+
+
+def test_protocol_file_hash_is_pinned():
+    for version, digest in PINNED_SHA256.items():
+        assert file_sha256(PROTOCOL_DIR / f"v{version}.json") == digest
+    proto = load_protocol(1)
+    assert proto.sha256 == PINNED_SHA256[1]
+    suites = proto.suites
+    assert {"risk_aware", "agents10", "comm", "aoi_bias", "smoke"} <= set(suites)
+    for name in ("risk_aware", "agents10", "comm", "aoi_bias"):
+        assert len(suites[name].instance_seeds) == 30 and len(suites[name].trial_seeds) == 10
+    assert [s.key for s in suites["risk_aware"].settings] == [
+        "budget=2.0", "budget=3.0", "budget=4.0", "budget=5.0"]
+    assert suites["agents10"].env_config(suites["agents10"].settings[0]).n_agents == 10
+
+
+def test_edited_protocol_is_refused(monkeypatch):
+    monkeypatch.setitem(PINNED_SHA256, 1, "0" * 64)
+    with pytest.raises(RuntimeError, match="never edited in place"):
+        load_protocol(1)
+
+
+def test_bad_suite_and_method_names_list_valid_ones(tmp_path):
+    with pytest.raises(SystemExit, match="valid suites.*risk_aware"):
+        eval_main(["--suite", "nope", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit, match="valid methods.*greedy"):
+        eval_main(["--suite", "smoke", "--methods", "nope", "--out", str(tmp_path)])
+    with pytest.raises(ValueError, match="valid methods"):
+        algos.get_method("nope")
+
+
+def test_every_method_yaml_names_a_registered_policy():
+    conf = sorted(p.stem for p in algos.registry.METHOD_CONF_DIR.glob("*.yaml"))
+    assert algos.method_names() == [m for m in conf if m in algos.method_names()]
+    for name in algos.method_names():
+        spec = algos.get_method(name)
+        assert spec.policy in algos.POLICIES
+    # every registered policy is used by at least one method
+    used = {algos.get_method(m).policy for m in algos.method_names()}
+    assert used == set(algos.POLICIES)
+
+
+def test_smoke_suite_end_to_end(smoke_board):
+    board, tmp = smoke_board
+    assert board["protocol"]["sha256"] == PINNED_SHA256[1]
+    assert {(r["method"], r["setting"]) for r in board["rows"]} == {
+        (m, s) for m in ("random", "greedy") for s in ("budget=1.0", "budget=1.5")}
+    for r in board["rows"]:
+        assert r["n"] == 6
+        assert r["distance_mean"] <= 2 * float(r["axes"]["budget"]) + 1e-9
+    for ext in ("json", "md", "png"):
+        assert (tmp / "lb" / f"smoke.{ext}").stat().st_size > 0
+    on_disk = json.loads((tmp / "lb" / "smoke.json").read_text())
+    assert on_disk["rows"] == board["rows"]
+
+
+def test_greedy_beats_random_on_smoke(smoke_board):
+    board, _ = smoke_board
+    by = {(r["method"], r["setting"]): r["trace_mean"] for r in board["rows"]}
+    for setting in ("budget=1.0", "budget=1.5"):
+        assert by[("greedy", setting)] < by[("random", setting)]
+
+
+def test_rerun_recomputes_nothing_and_same_seeds_give_identical_rows(smoke_board, tmp_path):
+    board, tmp = smoke_board
+    store = tmp / "res" / "smoke" / "greedy.jsonl"
+    before = store.read_bytes()
+    again = _run(tmp)
+    assert store.read_bytes() == before  # nothing recomputed
+    assert _rows_without_timing(again) == _rows_without_timing(board)
+    fresh = _run(tmp_path)  # recomputed from scratch in a new directory
+    assert _rows_without_timing(fresh) == _rows_without_timing(board)
+
+
+def test_killed_eval_resumes_to_the_same_file(smoke_board, tmp_path):
+    board, _ = smoke_board
+    cmd = [sys.executable, "-m", "maipp_bench.eval", "--suite", "smoke", "--out",
+           str(tmp_path / "res"), "--leaderboards", str(tmp_path / "lb"), "--no-progress"]
+    env = {**os.environ, "MAIPP_EVAL_STOP_AFTER_CHUNKS": "3"}
+    killed = subprocess.run(cmd, env=env, cwd=REPO, capture_output=True, text=True)
+    assert killed.returncode == 3, killed.stderr
+    assert not (tmp_path / "lb" / "smoke.json").exists()
+    stored = sum(len(p.read_text().splitlines()) for p in (tmp_path / "res" / "smoke").glob("*"))
+    assert stored == 9  # three chunks of three episodes survived the kill
+    done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    resumed = json.loads((tmp_path / "lb" / "smoke.json").read_text())
+    assert _rows_without_timing(resumed) == _rows_without_timing(board)
+
+
+def test_episode_subset_is_marked_and_kept_apart(tmp_path):
+    board = _run(tmp_path, "--episodes", "2", "--methods", "random", "--budgets", "1.0")
+    assert board["subset"] == {"episodes_per_setting": 2}
+    assert [r["n"] for r in board["rows"]] == [2]
+    assert not (tmp_path / "lb").exists()  # subsets never overwrite leaderboards
+    assert (tmp_path / "res" / "subset-2" / "leaderboards" / "smoke.md").read_text().count(
+        "Quick subset")
