@@ -62,3 +62,22 @@ def committed_points(env: MAIPPEnv, st: EpisodeState) -> tuple[torch.Tensor, tor
     src = nodes.gather(1, st.cur.unsqueeze(-1).expand(-1, -1, 2))
     dst = nodes.gather(1, st.tgt.unsqueeze(-1).expand(-1, -1, 2))
     return edge_points(src, dst, st.edge_len, st.progress.unsqueeze(-1) + offsets), mask
+
+
+def append_points(
+    held: torch.Tensor, held_mask: torch.Tensor, a: torch.Tensor, pts: torch.Tensor,
+    mask: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Replace agent ``a[e]``'s committed points by ``pts [E, R, 2]`` where ``mask`` has any
+    point (padding both to a common length)."""
+    e, m, r0, _ = held.shape
+    r = max(r0, pts.shape[1])
+    pad = torch.nn.functional.pad
+    held, held_mask = pad(held, (0, 0, 0, r - r0)), pad(held_mask, (0, r - r0))
+    pts, mask = pad(pts, (0, 0, 0, r - pts.shape[1])), pad(mask, (0, r - mask.shape[1]))
+    sel = torch.zeros(e, m, dtype=torch.bool, device=held.device)
+    sel[torch.arange(e, device=held.device), a] = True
+    sel = sel & mask.any(-1, keepdim=True)
+    held = torch.where(sel[..., None, None], pts.unsqueeze(1), held)
+    held_mask = torch.where(sel[..., None], mask.unsqueeze(1), held_mask)
+    return held, held_mask

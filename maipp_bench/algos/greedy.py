@@ -11,7 +11,12 @@ from __future__ import annotations
 
 import torch
 
-from maipp_bench.algos.base import PlannerPolicy, candidate_points, committed_points
+from maipp_bench.algos.base import (
+    PlannerPolicy,
+    append_points,
+    candidate_points,
+    committed_points,
+)
 from maipp_bench.algos.registry import register_policy
 from maipp_bench.envs.belief import interest_trace
 from maipp_bench.envs.maipp_env import EpisodeState, MAIPPEnv
@@ -64,21 +69,6 @@ class GreedyPolicy(PlannerPolicy):
             # Later agents condition on this agent's chosen edge.
             chosen = cand[ar, a, choice]  # [E, R, 2]
             chosen_mask = cand_mask[ar, a, choice] & active.unsqueeze(-1)
-            held, held_mask = _append(held, held_mask, a, chosen, chosen_mask)
+            held, held_mask = append_points(held, held_mask, a, chosen, chosen_mask)
         return action
 
-
-def _append(held, held_mask, a, pts, mask):
-    """Add ``pts [E, R, 2]`` to agent ``a``'s committed points (padding as needed)."""
-    e, m, r0, _ = held.shape
-    r = max(r0, pts.shape[1])
-    held = torch.nn.functional.pad(held, (0, 0, 0, r - r0))
-    held_mask = torch.nn.functional.pad(held_mask, (0, r - r0))
-    pts = torch.nn.functional.pad(pts, (0, 0, 0, r - pts.shape[1]))
-    mask = torch.nn.functional.pad(mask, (0, r - mask.shape[1]))
-    sel = torch.zeros(e, m, dtype=torch.bool, device=held.device)
-    sel[torch.arange(e, device=held.device), a] = True
-    sel = sel & mask.any(-1, keepdim=True)
-    held = torch.where(sel[..., None, None], pts.unsqueeze(1), held)
-    held_mask = torch.where(sel[..., None], mask.unsqueeze(1), held_mask)
-    return held, held_mask

@@ -222,12 +222,33 @@ class GPBelief:
         Returns:
             variance ``[*B, C, Qs]`` with ``Qs = n_query or Q``.
         """
+        return self._fantasy(prior, query, points, mask, n_query, None)[1]
+
+    def fantasy_posterior(
+        self,
+        prior: GPPrior,
+        query: torch.Tensor,
+        points: torch.Tensor,
+        values: torch.Tensor,
+        mask: torch.Tensor | None = None,
+        n_query: int | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Posterior interest mean and variance after measuring ``values [*B, C, P]``
+        (channel 0) at ``points``; see :meth:`fantasy_variance` for the other arguments.
+
+        Returns ``(mean [*B, C, Qs], variance [*B, C, Qs])``.
+        """
+        return self._fantasy(prior, query, points, mask, n_query, values)
+
+    def _fantasy(self, prior, query, points, mask, n_query, values):
         cap, nq = self.capacity, self.sigma2.shape[-1]
         qs = nq if n_query is None else n_query
         dtype = self.factor_inv.dtype
         *cand_shape, p, _ = points.shape
+        mu0 = self.mu[..., :qs, 0].unsqueeze(-2)
         if p == 0:
-            return self.sigma2[..., :qs].unsqueeze(-2).expand(*cand_shape, qs).clone()
+            var = self.sigma2[..., :qs].unsqueeze(-2).expand(*cand_shape, qs).clone()
+            return mu0.expand(*cand_shape, qs).clone(), var
         if mask is None:
             mask = torch.ones(points.shape[:-1], dtype=torch.bool, device=points.device)
         c = cand_shape[-1]
@@ -253,8 +274,16 @@ class GPBelief:
         v = self.cross.reshape(-1, cap, nq)[:, :h, :qs]
         w = (prior.cov(pts, q) - bmt @ v) * msk.unsqueeze(-1)  # [B, C*P, Qs]
         u = ls_inv @ w.reshape(-1, c, p, qs)
-        var = self.sigma2.reshape(-1, nq)[:, None, :qs] - (u * u).sum(-2)
-        return var.reshape(*cand_shape, qs)
+        var = (self.sigma2.reshape(-1, nq)[:, None, :qs] - (u * u).sum(-2)).reshape(*cand_shape, qs)
+        if values is None:
+            return None, var
+        # Innovation y_f - mu(X_f), whitened by the Schur factor, then mapped to the grid.
+        z = self.whitened.reshape(-1, cap, self.whitened.shape[-1])[:, :h, :1]
+        innov = (values.to(dtype).reshape(-1, c * p, 1) - bmt @ z).reshape(-1, c, p, 1) * m4[
+            ..., None]
+        mean = self.mu.reshape(-1, nq, self.mu.shape[-1])[:, None, :qs, 0] + (
+            (ls_inv @ innov) * u).sum(-2)
+        return mean.reshape(*cand_shape, qs), var
 
 
 def cholesky_inverse_small(s: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,38 @@
+"""Polyline helpers shared by path planners: resampling and measurement points along paths."""
+
+from __future__ import annotations
+
+import torch
+
+
+def polyline_lengths(points: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Cumulative arc length at each vertex of ``points [..., D, 2]`` (``mask``: vertex real)."""
+    seg = (points[..., 1:, :] - points[..., :-1, :]).norm(dim=-1)
+    seg = seg * (mask[..., 1:] & mask[..., :-1])
+    return torch.nn.functional.pad(torch.cumsum(seg, -1), (1, 0))
+
+
+def points_at(points: torch.Tensor, cum: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
+    """Points at arc lengths ``dist [..., R]`` along polylines ``points [..., D, 2]``."""
+    d = points.shape[-2]
+    seg = torch.searchsorted(cum.contiguous(), dist.contiguous(), right=True).clamp(1, d - 1) - 1
+    start = cum.gather(-1, seg)
+    length = cum.gather(-1, seg + 1) - start
+    a = points.gather(-2, seg.unsqueeze(-1).expand(*seg.shape, 2))
+    b = points.gather(-2, (seg + 1).unsqueeze(-1).expand(*seg.shape, 2))
+    frac = ((dist - start) / torch.where(length > 0, length, 1.0)).clamp(0, 1)
+    return a + (b - a) * frac.unsqueeze(-1)
+
+
+def measurement_points(
+    points: torch.Tensor, mask: torch.Tensor, since: torch.Tensor, spacing: float,
+    max_points: int,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where an agent that has travelled ``since`` since its last measurement would measure
+    along polylines ``points [..., D, 2]``: ``[..., R, 2]`` and a mask (R = max_points)."""
+    cum = polyline_lengths(points, mask)
+    total = cum.amax(-1, keepdim=True)
+    j = torch.arange(max_points, device=points.device, dtype=points.dtype)
+    dist = spacing * (j + 1) - since.unsqueeze(-1)
+    valid = dist <= total + 1e-12
+    return points_at(points, cum, torch.minimum(dist, total)), valid
