@@ -293,7 +293,7 @@ class MAIPPEnv(EnvBase):
         # Every agent measures at the shared start node (PROTOCOL: "at the start").
         start = roadmap.nodes[:, :1].expand(e, m, 2)
         agent = torch.arange(m, device=dev).expand(e, m)
-        self._log_measurements(st, start, agent, torch.ones(e, m, **b))
+        self._log_measurements(st, start, agent, torch.ones(e, m, **b), torch.zeros(e, m, **f64))
         self._decision_event(st, torch.ones(e, **b))
         return st
 
@@ -368,6 +368,7 @@ class MAIPPEnv(EnvBase):
     def _apply_moves(self, st, action, deciding, penalty) -> torch.Tensor:
         """Commit the deciding agents' moves in agent order; returns budget overflow [E]."""
         cfg, m = self.config, self.n_agents
+        action = torch.where(deciding, action, 0)  # others' actions are ignored, never read
         tgt = st.nbr.gather(-1, action.unsqueeze(-1)).squeeze(-1)
         length = st.nbr_len.gather(-1, action.unsqueeze(-1)).squeeze(-1)
         # Simultaneous deciders choosing one node: the lower index wins, the other waits.
@@ -379,8 +380,9 @@ class MAIPPEnv(EnvBase):
         overflow = accepted & (st.budget_used.unsqueeze(-1) + committed > cfg.team_budget + EPS)
         accepted &= ~overflow
         backtrack = accepted & (tgt.unsqueeze(-1) == st.history).any(-1)
-        penalty += (cfg.collision_penalty * collided + cfg.overflow_penalty * overflow
-                    + cfg.backtrack_penalty * backtrack)
+        f64 = penalty.dtype
+        penalty += (cfg.collision_penalty * collided.to(f64) + cfg.overflow_penalty
+                    * overflow.to(f64) + cfg.backtrack_penalty * backtrack.to(f64))
         st.tgt = torch.where(accepted, tgt, st.tgt)
         st.edge_len = torch.where(accepted, length, st.edge_len)
         st.progress = torch.where(accepted, 0.0, st.progress)
@@ -427,13 +429,15 @@ class MAIPPEnv(EnvBase):
             e, m, r = valid.shape
             agent = torch.arange(m, device=self.device).view(1, m, 1).expand(e, m, r)
             # Log in (round, agent) order: the order the measurements are taken.
+            # Unit speed: a measurement `offset` into the leg is taken `offset` later.
             self._log_measurements(
                 st, pts.transpose(1, 2).reshape(e, r * m, 2),
                 agent.transpose(1, 2).reshape(e, r * m), valid.transpose(1, 2).reshape(e, r * m),
+                (st.time.unsqueeze(-1).unsqueeze(-1) + offsets).transpose(1, 2).reshape(e, r * m),
             )
         st.progress = st.progress + travel
 
-    def _log_measurements(self, st, pts, agent, valid) -> None:
+    def _log_measurements(self, st, pts, agent, valid, times) -> None:
         """Append noisy measurements ``pts [E, P, 2]`` to the team log; discover evidence."""
         cfg = self.config
         e_idx, p_idx = valid.nonzero(as_tuple=True)
@@ -445,7 +449,7 @@ class MAIPPEnv(EnvBase):
         st.meas_x[e_idx, s] = pts[e_idx, p_idx]
         st.meas_y[e_idx, s] = values[e_idx, p_idx]
         st.meas_agent[e_idx, s] = a
-        st.meas_time[e_idx, s] = st.time[e_idx]
+        st.meas_time[e_idx, s] = times[e_idx, p_idx]
         st.known[e_idx, a, s] = True
         st.meas_count = st.meas_count + valid.sum(-1)
         near = torch.cdist(pts, st.world.evidence) <= cfg.detect_radius  # [E, P, Ki]
@@ -573,12 +577,12 @@ class MAIPPEnv(EnvBase):
         )
         found = st.evidence_found & st.world.interest_valid
         metrics = {
-            "trace": st.trace.to(dt),
-            "objective": st.objective.to(dt),
+            "trace": st.trace.to(dt, copy=True),
+            "objective": st.objective.to(dt, copy=True),
             "rmse": torch.sqrt(((st.belief.mu[:, -1, :g2, 0] - st.grid_truth) ** 2).mean(-1))
             .to(dt),
-            "distance": st.budget_used.to(dt),
-            "time": st.time.to(dt),
+            "distance": st.budget_used.to(dt, copy=True),
+            "time": st.time.to(dt, copy=True),
             "evidence_inside": (found & st.evidence_in_aoi).sum(-1),
             "evidence_outside": (found & ~st.evidence_in_aoi).sum(-1),
             "evidence_total": st.world.interest_valid.sum(-1),
@@ -591,7 +595,7 @@ class MAIPPEnv(EnvBase):
             current_node=st.cur.clone(),
             budget=budget_left.view(e, 1, 1).expand(e, m, 1).clone(),
             neighbors=st.nbr.clone(),
-            neighbor_dist=st.nbr_len.to(dt),
+            neighbor_dist=st.nbr_len.to(dt, copy=True),
             batch_size=(e, m),
         )
         agents = TensorDict(observation=observation, action_mask=st.mask.clone(),
