@@ -6,6 +6,7 @@ import torch
 from tensordict import TensorDictBase
 
 from maipp_bench.envs import rng
+from maipp_bench.envs.belief import GPBelief
 from maipp_bench.envs.dynamics import edge_points, sample_offsets
 from maipp_bench.envs.maipp_env import EpisodeState, MAIPPEnv
 
@@ -81,3 +82,29 @@ def append_points(
     held = torch.where(sel[..., None, None], pts.unsqueeze(1), held)
     held_mask = torch.where(sel[..., None], mask.unsqueeze(1), held_mask)
     return held, held_mask
+
+
+def conditioned_belief(
+    env: MAIPPEnv,
+    st: EpisodeState,
+    a: torch.Tensor,
+    points: torch.Tensor,
+    mask: torch.Tensor,
+    values: torch.Tensor | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> tuple[torch.Tensor, GPBelief]:
+    """Agent ``a[e]``'s belief in every env, copied in ``dtype`` and conditioned on the
+    teammates' committed measurement ``points [E, P, 2]`` (``mask [E, P]``).
+
+    Returns the agent's current interest mean on the grid ``[E, G2]`` (before any fantasy)
+    and the conditioned copy. ``values [E, P]`` are what the points would read: variances
+    do not depend on them, so planners that only need variances leave them at zero.
+    """
+    ar = torch.arange(st.batch_size[0], device=env.device)
+    belief = st.belief[ar, env.agent_belief_index[a]]
+    mu = belief.mu[:, : env.config.n_grid, 0].to(dtype)
+    belief = belief.grown(points.shape[1], dtype)
+    y = torch.zeros(points.shape[:-1], dtype=dtype, device=env.device) if values is None \
+        else values.to(dtype)
+    belief.add(env.prior, st.query, points, y.unsqueeze(-1).expand(-1, -1, 2), mask)
+    return mu, belief

@@ -16,6 +16,7 @@ from maipp_bench.algos.base import (
     append_points,
     candidate_points,
     committed_points,
+    conditioned_belief,
 )
 from maipp_bench.algos.registry import register_policy
 from maipp_bench.envs.belief import interest_trace
@@ -46,16 +47,11 @@ class GreedyPolicy(PlannerPolicy):
             who = st.deciding & (rank == r)
             active = who.any(-1)
             a = who.to(torch.int64).argmax(-1)  # [E]
-            belief = st.belief[ar, env.agent_belief_index[a]]
-            mu = belief.mu[:, :g2, 0]
-            # Condition a copy of the belief on the teammates' committed points this agent
-            # knows of (variances do not depend on values), then score its own edges.
+            # Condition on the teammates' committed points this agent knows of.
             known = contact[ar, a] & (torch.arange(m, device=env.device) != a.unsqueeze(-1))
             team = held.flatten(1, 2)  # [E, m*R', 2]
             team_mask = (held_mask & known.unsqueeze(-1)).flatten(1, 2)
-            zeros = torch.zeros(*team.shape[:-1], 2, dtype=mu.dtype, device=env.device)
-            belief = belief.grown(team.shape[1])
-            belief.add(env.prior, st.query, team, zeros, team_mask)
+            mu, belief = conditioned_belief(env, st, a, team, team_mask)
             var = belief.fantasy_variance(env.prior, st.query, cand[ar, a], cand_mask[ar, a],
                                           n_query=g2)
             beta, th = cfg.interest_beta, cfg.interest_threshold

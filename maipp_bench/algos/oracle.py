@@ -14,7 +14,12 @@ from __future__ import annotations
 
 import torch
 
-from maipp_bench.algos.base import PlannerPolicy, append_points, committed_points
+from maipp_bench.algos.base import (
+    PlannerPolicy,
+    append_points,
+    committed_points,
+    conditioned_belief,
+)
 from maipp_bench.algos.paths import measurement_points, polyline_lengths
 from maipp_bench.algos.registry import register_policy
 from maipp_bench.envs import rng
@@ -59,10 +64,7 @@ class OraclePolicy(PlannerPolicy):
             pts, pmask = measurement_points(walks, wmask, since, cfg.sample_spacing, max_pts)
             others = contact[ar, a] & (torch.arange(m, device=dev) != a.unsqueeze(-1))
             team, team_mask = held.flatten(1, 2), (held_mask & others.unsqueeze(-1)).flatten(1, 2)
-            belief = st.belief[ar, env.agent_belief_index[a]].grown(team.shape[1])
-            truth = self._truth(st, team)
-            belief.add(env.prior, st.query, team, truth.unsqueeze(-1).expand(-1, -1, 2),
-                       team_mask)
+            _, belief = conditioned_belief(env, st, a, team, team_mask, self._truth(st, team))
             values = self._truth(st, pts.flatten(1, 2)).view(pmask.shape)
             mean, var = belief.fantasy_posterior(env.prior, st.query, pts, values, pmask,
                                                  n_query=g2)

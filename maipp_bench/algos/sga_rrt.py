@@ -16,7 +16,7 @@ import math
 
 import torch
 
-from maipp_bench.algos.base import PlannerPolicy, committed_points
+from maipp_bench.algos.base import PlannerPolicy, committed_points, conditioned_belief
 from maipp_bench.algos.paths import measurement_points, points_at, polyline_lengths
 from maipp_bench.algos.registry import register_policy
 from maipp_bench.envs import rng
@@ -138,11 +138,7 @@ class SGARRTPolicy(PlannerPolicy):
             team = torch.cat([held.flatten(1, 2), self.plans.flatten(1, 2)], 1)
             team_mask = torch.cat([(held_mask & others.unsqueeze(-1)).flatten(1, 2),
                                    (self.plan_mask & others.unsqueeze(-1)).flatten(1, 2)], 1)
-            belief = st.belief[ar, env.agent_belief_index[a]]
-            mu = belief.mu[:, :g2, 0]
-            belief = belief.grown(team.shape[1])
-            zeros = torch.zeros(*team.shape[:-1], 2, dtype=mu.dtype, device=dev)
-            belief.add(env.prior, st.query, team, zeros, team_mask)
+            mu, belief = conditioned_belief(env, st, a, team, team_mask)
             var = belief.fantasy_variance(env.prior, st.query, pts, pmask, n_query=g2)
             tr = interest_trace(mu.unsqueeze(1), var, cfg.interest_beta, cfg.interest_threshold)
             tr = torch.where(valid, tr.to(torch.float64), torch.inf)

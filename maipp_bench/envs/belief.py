@@ -101,18 +101,23 @@ class GPBelief:
     def capacity(self) -> int:
         return self.factor_inv.shape[-1]
 
-    def grown(self, extra: int) -> GPBelief:
-        """A copy with room for ``extra`` more measurements (e.g. for fantasy points)."""
+    def grown(self, extra: int, dtype: torch.dtype | None = None) -> GPBelief:
+        """A copy with room for ``extra`` more measurements (e.g. teammates' planned ones),
+        optionally in another float dtype (planners score candidates in float32)."""
         cap = self.capacity
-        pad = torch.nn.functional.pad
+        dtype = dtype or self.factor_inv.dtype
+
+        def pad(x: torch.Tensor, widths: tuple[int, ...]) -> torch.Tensor:
+            return torch.nn.functional.pad(x.to(dtype), widths)
+
         inv = pad(self.factor_inv, (0, extra, 0, extra))
         idx = torch.arange(cap, cap + extra, device=inv.device)
         inv[..., idx, idx] = 1.0
         return GPBelief(
             points=pad(self.points, (0, 0, 0, extra)), factor_inv=inv,
             cross=pad(self.cross, (0, 0, 0, extra)), whitened=pad(self.whitened, (0, 0, 0, extra)),
-            mu=self.mu.clone(), sigma2=self.sigma2.clone(), count=self.count.clone(),
-            batch_size=self.batch_size,
+            mu=self.mu.to(dtype, copy=True), sigma2=self.sigma2.to(dtype, copy=True),
+            count=self.count.clone(), batch_size=self.batch_size,
         )
 
     # ------------------------------------------------------------------ updates
