@@ -13,6 +13,7 @@ import argparse
 import os
 import shlex
 import sys
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import torch
@@ -42,8 +43,20 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--leaderboards", default="leaderboards",
                    help="directory of leaderboards (full runs only; subsets go under --out)")
     p.add_argument("--protocol-version", type=int, default=1)
+    p.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),
+                   help="processes running chunks in parallel (default: min(2, cores))")
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch threads per process (default 1: the batched tensors are small, "
+                        "and contended OpenMP threads slow them down many times)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p.parse_args(argv)
+
+
+def _run_chunk(method: str, cfg, insts: list[int], trial: int, device: str,
+               threads: int) -> list[dict]:
+    torch.set_num_threads(threads)
+    with torch.inference_mode():
+        return run_chunk(algos.get_method(method), cfg, insts, trial, device=device)
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -103,20 +116,35 @@ def main(argv: list[str] | None = None) -> dict:
     stop_after = int(os.environ.get(_STOP_AFTER_ENV, "0") or 0)
     bar = tqdm(total=total, unit="ep", desc=f"{suite.name}", disable=args.no_progress,
                dynamic_ncols=True)
-    for n_chunks, (method, setting, trial, insts) in enumerate(chunks, start=1):
-        spec = algos.get_method(method)
-        bar.set_postfix_str(f"{method} {setting.key} trial {trial}")
-        cfg = suite.env_config(setting)
-        with torch.inference_mode():
-            rows = run_chunk(spec, cfg, insts, trial, device=args.device)
+    def store_chunk(method: str, setting_key: str, rows: list[dict]) -> None:
         for r in rows:
-            r.update(method=method, setting=setting.key, protocol_version=protocol.version,
+            r.update(method=method, setting=setting_key, protocol_version=protocol.version,
                      protocol_sha256=protocol.sha256)
         store.append(method, rows)
         bar.update(len(rows))
-        if stop_after and n_chunks >= stop_after:
-            bar.close()
-            os._exit(3)  # simulate a hard kill (tests of resumption)
+
+    jobs = [(m, suite.env_config(s), insts, trial, args.device, args.threads)
+            for m, s, trial, insts in chunks]
+    if args.workers <= 1 or len(jobs) <= 1:
+        torch.set_num_threads(args.threads)
+        for n_done, ((method, setting, trial, _), job) in enumerate(zip(chunks, jobs), 1):
+            bar.set_postfix_str(f"{method} {setting.key} trial {trial}")
+            store_chunk(method, setting.key, _run_chunk(*job))
+            if stop_after and n_done >= stop_after:
+                bar.close()
+                os._exit(3)  # simulate a hard kill (tests of resumption)
+    else:
+        with ProcessPoolExecutor(max_workers=args.workers) as pool:
+            futures = {pool.submit(_run_chunk, *job): chunk for chunk, job in zip(chunks, jobs)}
+            for n_done, fut in enumerate(as_completed(futures), 1):
+                method, setting, trial, _ = futures[fut]
+                bar.set_postfix_str(f"{method} {setting.key} trial {trial}")
+                store_chunk(method, setting.key, fut.result())
+                if stop_after and n_done >= stop_after:
+                    bar.close()
+                    for proc in list(pool._processes.values()):  # die with the workers
+                        proc.kill()
+                    os._exit(3)
     bar.close()
 
     rows_by_method = {m: [r for r in store.rows(m) if r["protocol_sha256"] == protocol.sha256]

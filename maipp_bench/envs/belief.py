@@ -147,9 +147,13 @@ class GPBelief:
             return
         flat = mask.reshape(-1, p)
         sel = flat.any(-1)
-        idx = sel.nonzero().squeeze(-1)
-        if idx.numel() == 0:
+        n_sel = int(sel.sum())
+        if n_sel == 0:
             return
+        # Few beliefs take points: gather them. Most do: update all in place (the others
+        # get all-padding blocks, hence exact zero updates) rather than copy V.
+        dense = 2 * n_sel >= sel.numel()
+        idx = torch.arange(sel.numel(), device=sel.device) if dense else sel.nonzero().squeeze(-1)
         dtype, dev = self.factor_inv.dtype, self.factor_inv.device
         fm = flat[idx]
         n, n_new = self.count.reshape(-1)[idx], fm.sum(-1)
@@ -164,12 +168,12 @@ class GPBelief:
         # Work on the used prefix only: rows >= h are identity/zero in every selected belief.
         h = int(n.max())
         w_new = min(cap, h + p)  # columns the new rows of L^-1 can touch
-        all_sel = idx.numel() == sel.numel()
+        all_sel = dense
         Li = self.factor_inv.reshape(-1, cap, cap)[idx, :h, :h]
         X = self.points.reshape(-1, cap, 2)[idx, :h]
         Z = self.whitened.reshape(-1, cap, nc)[idx, :h]
         V = self.cross.reshape(-1, cap, nq)
-        V = V[:, :h] if all_sel else V[idx, :h]  # a view when every belief takes points
+        V = V[:, :h] if all_sel else V[idx, :h]  # a view in the dense case
         q = query.expand(*self.batch_size, nq, 2).reshape(-1, nq, 2)
         q = (q if all_sel else q[idx]).to(dtype)
         used = torch.arange(h, device=dev) < n.unsqueeze(-1)  # [S, h]
