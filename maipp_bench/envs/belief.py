@@ -27,6 +27,7 @@ hypothetical points were measured" from the same caches, without a refit.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -153,29 +154,44 @@ class GPBelief:
         # Few beliefs take points: gather them. Most do: update all in place (the others
         # get all-padding blocks, hence exact zero updates) rather than copy V.
         dense = 2 * n_sel >= sel.numel()
-        idx = torch.arange(sel.numel(), device=sel.device) if dense else sel.nonzero().squeeze(-1)
+        idx = sel.nonzero().squeeze(-1)
+
+        def rows(t: torch.Tensor, h: int | None = None, square: bool = False) -> torch.Tensor:
+            """Per-belief rows of ``t [*B, ...]`` (first ``h`` slots): a view when dense, else
+            a gather of the selected beliefs (slicing first, so only the prefix is copied)."""
+            flat_t = t.reshape(-1, *t.shape[len(bshape):])
+            if h is not None:
+                flat_t = flat_t[:, :h, :h] if square else flat_t[:, :h]
+            return flat_t if dense else flat_t[idx]
+
+        bshape = tuple(self.batch_size)
         dtype, dev = self.factor_inv.dtype, self.factor_inv.device
-        fm = flat[idx]
-        n, n_new = self.count.reshape(-1)[idx], fm.sum(-1)
+        fm = rows(mask)
+        n = rows(self.count)
+        n_new = fm.sum(-1)
         if bool((n + n_new > cap).any()):
             raise RuntimeError(f"GPBelief capacity ({cap}) exceeded")
         # Move each belief's selected points to the front, keeping their order.
         order = torch.argsort((~fm).to(torch.int8), dim=-1, stable=True)
         fm = fm.gather(-1, order)
-        xs = x.reshape(-1, p, 2)[idx].gather(-2, order.unsqueeze(-1).expand(-1, -1, 2))
-        ys = y.reshape(-1, p, nc)[idx].gather(-2, order.unsqueeze(-1).expand(-1, -1, nc))
-        xs, ys = xs.to(dtype), ys.to(dtype)
+        xs = rows(x).gather(-2, order.unsqueeze(-1).expand(-1, -1, 2)).to(dtype)
+        ys = rows(y).gather(-2, order.unsqueeze(-1).expand(-1, -1, nc)).to(dtype)
         # Work on the used prefix only: rows >= h are identity/zero in every selected belief.
         h = int(n.max())
         w_new = min(cap, h + p)  # columns the new rows of L^-1 can touch
-        all_sel = dense
-        Li = self.factor_inv.reshape(-1, cap, cap)[idx, :h, :h]
-        X = self.points.reshape(-1, cap, 2)[idx, :h]
-        Z = self.whitened.reshape(-1, cap, nc)[idx, :h]
-        V = self.cross.reshape(-1, cap, nq)
-        V = V[:, :h] if all_sel else V[idx, :h]  # a view in the dense case
-        q = query.expand(*self.batch_size, nq, 2).reshape(-1, nq, 2)
-        q = (q if all_sel else q[idx]).to(dtype)
+        Li = rows(self.factor_inv, h, square=True)
+        X = rows(self.points, h)
+        Z = rows(self.whitened, h)
+        V = rows(self.cross, h)
+        # Query points per belief without materialising the broadcast over beliefs.
+        qb = query.to(dtype).expand(*bshape, nq, 2)
+        q = qb.reshape(-1, nq, 2) if qb.is_contiguous() else None
+        if q is None:
+            sub = torch.arange(len(idx) if not dense else math.prod(bshape), device=dev)
+            sub = sub if dense else idx
+            q = qb[torch.unravel_index(sub, bshape)]
+        elif not dense:
+            q = q[idx]
         used = torch.arange(h, device=dev) < n.unsqueeze(-1)  # [S, h]
 
         kxf = prior.cov(X, xs) * (used.unsqueeze(-1) & fm.unsqueeze(-2))  # [S, h, P]
@@ -192,21 +208,24 @@ class GPBelief:
         # New rows n+i of L^-1: [-Ls^-1 B^T L^-1 (old columns), Ls^-1 (columns n..n+P-1)].
         old = torch.nn.functional.pad(-(ls_inv @ (bmt @ Li)), (0, w_new - h))  # 0 at cols >= n
         j = (torch.arange(w_new, device=dev).view(1, 1, -1) - n.view(-1, 1, 1)).expand(-1, p, -1)
-        rows = torch.where((j >= 0) & (j < p), ls_inv.gather(-1, j.clamp(0, p - 1)), old)
+        new_rows = torch.where((j >= 0) & (j < p), ls_inv.gather(-1, j.clamp(0, p - 1)), old)
         bi, pi = fm.nonzero(as_tuple=True)
-        target, dst = n[bi] + pi, idx[bi]
-        self.factor_inv.view(-1, cap, cap)[dst, target, :w_new] = rows[bi, pi]
+        target, dst = n[bi] + pi, (bi if dense else idx[bi])
+        self.factor_inv.view(-1, cap, cap)[dst, target, :w_new] = new_rows[bi, pi]
         self.points.view(-1, cap, 2)[dst, target] = xs[bi, pi]
         self.cross.view(-1, cap, nq)[dst, target] = v_new[bi, pi]
         self.whitened.view(-1, cap, nc)[dst, target] = z_new[bi, pi]
         d_mu, d_var = v_new.transpose(-1, -2) @ z_new, (v_new * v_new).sum(-2)
-        if all_sel:
+        if dense:
             self.mu.view(-1, nq, nc).add_(d_mu)
             self.sigma2.view(-1, nq).sub_(d_var)
         else:
             self.mu.view(-1, nq, nc)[idx] += d_mu
             self.sigma2.view(-1, nq)[idx] -= d_var
-        self.count.view(-1)[idx] += n_new
+        if dense:
+            self.count.view(-1).add_(n_new)
+        else:
+            self.count.view(-1)[idx] += n_new
 
     # ------------------------------------------------------------------ queries
     def fantasy_variance(

@@ -391,23 +391,38 @@ class MAIPPEnv(EnvBase):
 
     def _advance(self, st: EpisodeState, terminated: torch.Tensor, penalty: torch.Tensor) -> None:
         """Advance time event by event until some agent decides; mark stuck envs done."""
+        e = terminated.shape[0]
         pending = ~terminated
         while True:
-            moving = st.edge_len > 0
-            stuck = pending & ~moving.any(-1)  # nobody moves and nobody can decide
+            stuck = pending & ~(st.edge_len > 0).any(-1)  # nobody moves, nobody can decide
             terminated |= stuck
             pending &= ~stuck
-            if not bool(pending.any()):
+            n = int(pending.sum())
+            if n == 0:
                 return
-            left = torch.where(moving, st.edge_len - st.progress, torch.inf)
-            dt = torch.where(pending, left.amin(-1), 0.0)
-            travel = torch.where(moving & pending.unsqueeze(-1), dt.unsqueeze(-1), 0.0)
-            self._travel(st, travel)
-            st.time = st.time + dt
-            arrived = moving & pending.unsqueeze(-1) & (left <= dt.unsqueeze(-1) + EPS)
-            self._arrive(st, arrived, penalty)
-            self._decision_event(st, pending)
-            pending &= ~st.deciding.any(-1)
+            if 2 * n >= e:
+                self._next_event(st, pending, penalty)
+                decided = st.deciding.any(-1)
+            else:  # a few stragglers: work on a copy of just those envs
+                idx = pending.nonzero().squeeze(-1)
+                sub, pen = st[idx], penalty[idx]
+                self._next_event(sub, torch.ones(n, dtype=torch.bool, device=self.device), pen)
+                st[idx], penalty[idx] = sub, pen
+                decided = torch.zeros_like(pending)
+                decided[idx] = sub.deciding.any(-1)
+            pending &= ~decided
+
+    def _next_event(self, st: EpisodeState, pending: torch.Tensor, penalty: torch.Tensor) -> None:
+        """Move the pending envs to their next arrival and process that decision event."""
+        moving = st.edge_len > 0
+        left = torch.where(moving, st.edge_len - st.progress, torch.inf)
+        dt = torch.where(pending, left.amin(-1), 0.0)
+        travel = torch.where(moving & pending.unsqueeze(-1), dt.unsqueeze(-1), 0.0)
+        self._travel(st, travel)
+        st.time = st.time + dt
+        arrived = moving & pending.unsqueeze(-1) & (left <= dt.unsqueeze(-1) + EPS)
+        self._arrive(st, arrived, penalty)
+        self._decision_event(st, pending)
 
     # ================================================================== motion
     def _positions(self, st: EpisodeState) -> torch.Tensor:
