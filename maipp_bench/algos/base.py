@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import torch
 from tensordict import TensorDictBase
 
@@ -108,3 +110,21 @@ def conditioned_belief(
         else values.to(dtype)
     belief.add(env.prior, st.query, points, y.unsqueeze(-1).expand(-1, -1, 2), mask)
     return mu, belief
+
+
+def sga_rounds(st: EpisodeState) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+    """Sequential greedy assignment, batched over envs: round r yields the r-th deciding
+    agent ``a [E]`` of every env (agent-index priority) and ``active [E]`` (env has one).
+    Usually a single round, since decisions are asynchronous."""
+    rank = torch.cumsum(st.deciding.to(torch.int64), -1) - 1
+    rounds = int(st.deciding.sum(-1).max()) if bool(st.deciding.any()) else 0
+    for r in range(rounds):
+        who = st.deciding & (rank == r)
+        yield who.to(torch.int64).argmax(-1), who.any(-1)
+
+
+def teammates_of(contact: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+    """``[E, m]``: the agents agent ``a[e]`` is in contact with, itself excluded."""
+    e, m, _ = contact.shape
+    ar = torch.arange(e, device=contact.device)
+    return contact[ar, a] & (torch.arange(m, device=contact.device) != a.unsqueeze(-1))

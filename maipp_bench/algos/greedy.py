@@ -17,6 +17,8 @@ from maipp_bench.algos.base import (
     candidate_points,
     committed_points,
     conditioned_belief,
+    sga_rounds,
+    teammates_of,
 )
 from maipp_bench.algos.registry import register_policy
 from maipp_bench.envs.belief import interest_trace
@@ -40,15 +42,10 @@ class GreedyPolicy(PlannerPolicy):
         held, held_mask = committed_points(env, st)  # [E, m, R', 2]
         contact = env.in_contact()
         action = torch.zeros(e, m, dtype=torch.int64, device=env.device)
-        rank = torch.cumsum(st.deciding.to(torch.int64), -1) - 1
         noise = self.uniforms(st, (m, k))
-        # SGA is sequential by definition: one round per deciding agent, all envs at once.
-        for r in range(int(st.deciding.sum(-1).max()) if st.deciding.any() else 0):
-            who = st.deciding & (rank == r)
-            active = who.any(-1)
-            a = who.to(torch.int64).argmax(-1)  # [E]
+        for a, active in sga_rounds(st):  # one round per deciding agent, all envs at once
             # Condition on the teammates' committed points this agent knows of.
-            known = contact[ar, a] & (torch.arange(m, device=env.device) != a.unsqueeze(-1))
+            known = teammates_of(contact, a)
             team = held.flatten(1, 2)  # [E, m*R', 2]
             team_mask = (held_mask & known.unsqueeze(-1)).flatten(1, 2)
             mu, belief = conditioned_belief(env, st, a, team, team_mask)

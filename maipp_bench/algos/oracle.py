@@ -19,6 +19,8 @@ from maipp_bench.algos.base import (
     append_points,
     committed_points,
     conditioned_belief,
+    sga_rounds,
+    teammates_of,
 )
 from maipp_bench.algos.paths import measurement_points, polyline_lengths
 from maipp_bench.algos.registry import register_policy
@@ -46,15 +48,10 @@ class OraclePolicy(PlannerPolicy):
         held, held_mask = committed_points(env, st)
         contact = env.in_contact()
         action = torch.zeros(e, m, dtype=torch.int64, device=dev)
-        rank = torch.cumsum(st.deciding.to(torch.int64), -1) - 1
-        rounds = int(st.deciding.sum(-1).max()) if bool(st.deciding.any()) else 0
         left = (cfg.team_budget - st.budget_used).clamp_min(0)
         max_pts = int((self.depth * st.roadmap.neighbor_dist.masked_fill(
             ~st.roadmap.neighbor_valid, 0).amax() + cfg.sample_spacing) / cfg.sample_spacing) + 1
-        for r in range(rounds):
-            who = st.deciding & (rank == r)
-            active = who.any(-1)
-            a = who.to(torch.int64).argmax(-1)
+        for a, active in sga_rounds(st):  # one round per deciding agent, all envs at once
             walks, wmask, first = self._walks(st, a, rng.derive(self.keys, st.steps, a))
             # Truncate each walk at the remaining team budget.
             cum = polyline_lengths(walks, wmask)
@@ -62,7 +59,7 @@ class OraclePolicy(PlannerPolicy):
             length = polyline_lengths(walks, wmask).amax(-1).clamp_min(1e-9)
             since = st.since_sample[ar, a].unsqueeze(-1).expand(-1, walks.shape[1])
             pts, pmask = measurement_points(walks, wmask, since, cfg.sample_spacing, max_pts)
-            others = contact[ar, a] & (torch.arange(m, device=dev) != a.unsqueeze(-1))
+            others = teammates_of(contact, a)
             team, team_mask = held.flatten(1, 2), (held_mask & others.unsqueeze(-1)).flatten(1, 2)
             _, belief = conditioned_belief(env, st, a, team, team_mask, self._truth(st, team))
             values = self._truth(st, pts.flatten(1, 2)).view(pmask.shape)

@@ -16,7 +16,13 @@ import math
 
 import torch
 
-from maipp_bench.algos.base import PlannerPolicy, committed_points, conditioned_belief
+from maipp_bench.algos.base import (
+    PlannerPolicy,
+    committed_points,
+    conditioned_belief,
+    sga_rounds,
+    teammates_of,
+)
 from maipp_bench.algos.paths import measurement_points, points_at, polyline_lengths
 from maipp_bench.algos.registry import register_policy
 from maipp_bench.envs import rng
@@ -119,12 +125,7 @@ class SGARRTPolicy(PlannerPolicy):
         held, held_mask = committed_points(env, st)
         contact = env.in_contact()
         action = torch.zeros(e, m, dtype=torch.int64, device=dev)
-        rank = torch.cumsum(st.deciding.to(torch.int64), -1) - 1
-        rounds = int(st.deciding.sum(-1).max()) if bool(st.deciding.any()) else 0
-        for r in range(rounds):
-            who = st.deciding & (rank == r)
-            active = who.any(-1)
-            a = who.to(torch.int64).argmax(-1)
+        for a, active in sga_rounds(st):  # one round per deciding agent, all envs at once
             key = rng.derive(self.keys, st.steps, a)
             root = st.roadmap.nodes[ar, st.cur[ar, a]]
             paths, vmask, valid = self._branches(*self._grow(root, rng.derive(key, 1)),
@@ -134,7 +135,7 @@ class SGARRTPolicy(PlannerPolicy):
                                             cfg.sample_spacing, self.max_points)
             pmask &= valid.unsqueeze(-1)
             # Condition on teammates' plans and remaining edges (those in contact).
-            others = contact[ar, a] & (torch.arange(m, device=dev) != a.unsqueeze(-1))
+            others = teammates_of(contact, a)
             team = torch.cat([held.flatten(1, 2), self.plans.flatten(1, 2)], 1)
             team_mask = torch.cat([(held_mask & others.unsqueeze(-1)).flatten(1, 2),
                                    (self.plan_mask & others.unsqueeze(-1)).flatten(1, 2)], 1)
