@@ -568,26 +568,34 @@ class MAIPPEnv(EnvBase):
         g2, dt = cfg.n_grid, cfg.torch_dtype
         nodes = st.roadmap.nodes
         n = nodes.shape[1]
-        mu = self._agent_view(st.belief.mu[:, :, g2:])  # [E, m, N, 2]
-        sd = torch.sqrt(self._agent_view(st.belief.sigma2[:, :, g2:]).clamp_min(0))
-        ucb = mu[..., 1] + cfg.risk_beta * sd if cfg.risk_enabled else torch.zeros_like(sd)
+        # Features of each belief once ([E, G, N, 7], intent column 0); agents then view
+        # their own belief's rows. With one shared belief and no intents yet, every agent
+        # sees the same features: an expanded view, not m copies.
+        g = st.belief.batch_size[1]
+        per_belief = torch.empty(e, g, n, len(NODE_FEATURES), dtype=dt, device=self.device)
+        per_belief[..., 0:2] = nodes.to(dt).unsqueeze(1)
+        per_belief[..., 2] = st.belief.mu[:, :, g2:, 0]
+        sd = per_belief[..., 3]
+        torch.sqrt(st.belief.sigma2[:, :, g2:].clamp_min(0), out=sd)
+        if cfg.risk_enabled:
+            torch.add(st.belief.mu[:, :, g2:, 1], sd, alpha=cfg.risk_beta, out=per_belief[..., 4])
+        else:
+            per_belief[..., 4] = 0
+        per_belief[..., 5] = 0
+        per_belief[..., 6] = st.node_in_aoi.to(dt).unsqueeze(1)
         if bool(st.recv_valid.any()):
-            intent = intent_feature(nodes, st.recv_mean, st.recv_cov, st.recv_valid).to(dt)
-        else:  # nobody has broadcast an intent yet
-            intent = torch.zeros_like(sd)
-        xy = nodes.to(dt).unsqueeze(1).expand(e, m, n, 2)
-        aoi = st.node_in_aoi.to(dt).unsqueeze(1).expand(e, m, n)
-        feats = torch.cat([xy, torch.stack([mu[..., 0], sd, ucb, intent, aoi], -1)], -1)
+            feats = per_belief.index_select(1, self._agent_belief)
+            feats[..., 5] = intent_feature(nodes, st.recv_mean, st.recv_cov, st.recv_valid)
+        elif g == 1:
+            feats = per_belief.expand(e, m, n, len(NODE_FEATURES))
+        else:
+            feats = per_belief.index_select(1, self._agent_belief)
         budget_left = ((cfg.team_budget - st.budget_used) / cfg.team_budget).clamp(0, 1).to(dt)
 
-        team_mu, team_var = st.belief.mu[:, -1, g2:], st.belief.sigma2[:, -1, g2:]
-        team_sd = torch.sqrt(team_var.clamp_min(0))
-        team_ucb = (team_mu[..., 1] + cfg.risk_beta * team_sd if cfg.risk_enabled
-                    else torch.zeros_like(team_sd))
         targeting = (st.tgt.unsqueeze(-1) == torch.arange(n, device=self.device)).sum(1)
-        state = torch.stack(
-            [nodes[..., 0].to(dt), nodes[..., 1].to(dt), team_mu[..., 0], team_sd, team_ucb,
-             targeting.to(dt), st.node_in_aoi.to(dt), budget_left.unsqueeze(-1).expand(e, n)],
+        state = torch.cat(
+            [per_belief[:, -1, :, :5], targeting.to(dt).unsqueeze(-1),
+             st.node_in_aoi.to(dt).unsqueeze(-1), budget_left.view(e, 1, 1).expand(e, n, 1)],
             -1,
         )
         found = st.evidence_found & st.world.interest_valid
