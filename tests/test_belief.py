@@ -172,6 +172,23 @@ def test_fantasy_posterior_and_grown_match_dense_gp():
             assert float((var[i, c] - ref_var).abs().max()) < 1e-9
 
 
+def test_fantasy_trace_equals_trace_of_fantasy_variance():
+    gen = torch.Generator().manual_seed(9)
+    nq, ng = 120, 100
+    query = torch.rand(3, nq, 2, generator=gen, dtype=F64)
+    gp = GPBelief.empty((3,), 30, nq, 2)
+    x = torch.rand(3, 15, 2, generator=gen, dtype=F64)
+    gp.add(PRIOR, query, x, torch.rand(3, 15, 2, generator=gen, dtype=F64),
+           torch.ones(3, 15, dtype=torch.bool))
+    pts = torch.rand(3, 6, 4, 2, generator=gen, dtype=F64)
+    pmask = torch.rand(3, 6, 4, generator=gen) < 0.7
+    mean = gp.mu[:, :ng, 0]
+    full = gp.fantasy_variance(PRIOR, query, pts, pmask, n_query=ng)
+    expected = interest_trace(mean.unsqueeze(1), full, 1.0, 0.4)
+    got = gp.fantasy_trace(PRIOR, query, pts, pmask, mean, 1.0, 0.4, ng)
+    assert float((got - expected).abs().max()) < 1e-9
+
+
 def test_empty_belief_trace_is_900():
     grid = grid_points(30, F64, "cpu")
     assert grid.shape == (900, 2)
