@@ -61,6 +61,7 @@ def _run_chunk(method: str, cfg, insts: list[int], trial: int, device: str,
 
 def main(argv: list[str] | None = None) -> dict:
     args = parse_args(argv)
+    commit = leaderboard.git_commit()  # the code that computes this run's rows
     protocol = load_protocol(args.protocol_version)
     try:
         suite = protocol.suite(args.suite)
@@ -152,7 +153,7 @@ def main(argv: list[str] | None = None) -> dict:
     command = "python -m maipp_bench.eval " + " ".join(shlex.quote(a) for a in (argv or
                                                                              sys.argv[1:]))
     board = leaderboard.build(protocol, suite, settings, methods, rows_by_method, command,
-                              subset)
+                              subset, commit)
     target = Path(args.leaderboards) if subset is None else out_root / "leaderboards"
     paths = leaderboard.write(board, target)
     print(f"wrote {', '.join(str(p) for p in paths)}")

@@ -88,8 +88,11 @@ def build(
     rows_by_method: dict[str, list[dict[str, Any]]],
     command: str,
     subset: int | None,
+    commit: str | None = None,
 ) -> dict[str, Any]:
-    """The leaderboard document: one row per (method, setting) with stored episodes."""
+    """The leaderboard document: one row per (method, setting) with stored episodes.
+
+    ``commit`` is the code that computed the rows (taken when the run starts)."""
     paper = _paper_lookup(suite)
     board_rows = []
     for method in methods:
@@ -113,7 +116,7 @@ def build(
         "description": suite.description,
         "protocol": {"version": protocol.version, "sha256": protocol.sha256},
         "package_version": maipp_bench.__version__,
-        "git_commit": git_commit(),
+        "git_commit": commit or git_commit(),
         "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "machine": machine(),
         "command": command,
