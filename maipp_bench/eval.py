@@ -38,6 +38,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--budgets", nargs="+", type=float, help="only settings with these budgets")
     p.add_argument("--episodes", type=int, help="quick subset: this many episodes per "
                    "setting (stored and reported apart from full runs)")
+    p.add_argument("--checkpoint", action="append", default=[], metavar="METHOD=PATH",
+                   help="checkpoint of a learned method (repeatable); passed to its policy")
     p.add_argument("--device", default="cpu")
     p.add_argument("--out", default="results", help="directory of per-episode results")
     p.add_argument("--leaderboards", default="leaderboards",
@@ -53,10 +55,27 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def _run_chunk(method: str, cfg, insts: list[int], trial: int, device: str,
-               threads: int) -> list[dict]:
+               threads: int, policy_kwargs: dict) -> list[dict]:
     torch.set_num_threads(threads)
     with torch.inference_mode():
-        return run_chunk(algos.get_method(method), cfg, insts, trial, device=device)
+        return run_chunk(algos.get_method(method), cfg, insts, trial, device=device,
+                         **policy_kwargs)
+
+
+def _checkpoints(pairs: list[str], methods: list[str]) -> dict[str, dict]:
+    """``["ours_ti=path.pt"]`` -> ``{"ours_ti": {"checkpoint": "path.pt"}}`` (checked)."""
+    out: dict[str, dict] = {}
+    for pair in pairs:
+        name, sep, path = pair.partition("=")
+        if not sep or not path:
+            raise SystemExit(f"error: --checkpoint expects METHOD=PATH, got {pair!r}")
+        if name not in methods:
+            raise SystemExit(f"error: --checkpoint for {name!r}, which is not among the "
+                             f"methods being run: {methods}")
+        if not Path(path).exists():
+            raise SystemExit(f"error: checkpoint {path!r} for {name!r} does not exist")
+        out[name] = {"checkpoint": path}
+    return out
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -81,6 +100,7 @@ def main(argv: list[str] | None = None) -> dict:
         if missing:
             print(f"note: suite methods not available in this build, skipped: {missing}",
                   file=sys.stderr)
+    policy_kwargs = _checkpoints(args.checkpoint, methods)
     settings = list(suite.settings)
     if args.budgets:
         budgets = set(args.budgets)
@@ -124,8 +144,8 @@ def main(argv: list[str] | None = None) -> dict:
         store.append(method, rows)
         bar.update(len(rows))
 
-    jobs = [(m, suite.env_config(s), insts, trial, args.device, args.threads)
-            for m, s, trial, insts in chunks]
+    jobs = [(m, suite.env_config(s), insts, trial, args.device, args.threads,
+             policy_kwargs.get(m, {})) for m, s, trial, insts in chunks]
     if args.workers <= 1 or len(jobs) <= 1:
         torch.set_num_threads(args.threads)
         for n_done, ((method, setting, trial, _), job) in enumerate(zip(chunks, jobs), 1):

@@ -61,6 +61,11 @@ def test_bad_suite_and_method_names_list_valid_ones(tmp_path):
         eval_main(["--suite", "smoke", "--methods", "nope", "--out", str(tmp_path)])
     with pytest.raises(ValueError, match="valid methods"):
         algos.get_method("nope")
+    with pytest.raises(SystemExit, match="METHOD=PATH"):
+        eval_main(["--suite", "smoke", "--checkpoint", "greedy", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit, match="not among the methods"):
+        eval_main(["--suite", "smoke", "--methods", "random", "--checkpoint",
+                   "greedy=x.pt", "--out", str(tmp_path)])
 
 
 def test_every_method_yaml_names_a_registered_policy():
