@@ -1,0 +1,141 @@
+"""The paper's attention policy network (encoder-decoder with a pointer head).
+
+Paper Sec. III-C and the reference code: node features embedded to 128 dims plus a
+Laplacian positional encoding (32 eigenvectors of the symmetric normalised Laplacian of
+the roadmap); pre-LayerNorm self-attention over all nodes; a decoder that concatenates the
+remaining budget and the interest threshold to the current node's embedding and projects
+back to 128, runs an LSTM cell over the agent's trajectory, attends over the k neighbour
+slots and scores them with a pointer head (10 tanh clipping, masked logits); a value head.
+
+Only the network lives here; training (issue 5) wires it to TorchRL.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from maipp_bench.envs.maipp_env import NODE_FEATURES
+
+# Which node features each method sees (paper: ours adds risk and intent to CAtNIPP's).
+FEATURE_SETS: dict[str, tuple[str, ...]] = {
+    "ours": ("x", "y", "interest_mean", "interest_std", "risk_ucb", "intent"),
+    "catnipp": ("x", "y", "interest_mean", "interest_std"),
+}
+
+
+def feature_columns(feature_set: str) -> list[int]:
+    """Column indices of ``NODE_FEATURES`` used by a feature set (ValueError if unknown)."""
+    if feature_set not in FEATURE_SETS:
+        raise ValueError(f"unknown feature set {feature_set!r}; valid: {sorted(FEATURE_SETS)}")
+    return [NODE_FEATURES.index(name) for name in FEATURE_SETS[feature_set]]
+
+
+def laplacian_encoding(
+    neighbors: torch.Tensor, valid: torch.Tensor, dim: int = 32
+) -> torch.Tensor:
+    """Laplacian positional encoding of roadmaps: ``[E, N, k]`` slots -> ``[E, N, dim]``.
+
+    Eigenvectors of the symmetric normalised Laplacian I - D^-1/2 A D^-1/2 of the
+    symmetrised k-NN graph (the reference code built I - D^-1/2 A by mistake), for the
+    ``dim`` smallest eigenvalues after the first (constant) one; each vector's sign is
+    fixed so that its largest-magnitude entry is positive (eigenvectors have no sign).
+    """
+    e, n, _ = neighbors.shape
+    adj = torch.zeros(e, n, n, dtype=torch.float64, device=neighbors.device)
+    adj.scatter_(-1, neighbors, valid.to(torch.float64))
+    adj = ((adj + adj.transpose(-1, -2)) > 0).to(torch.float64)
+    deg = adj.sum(-1).clamp_min(1.0)
+    inv_sqrt = deg.rsqrt()
+    lap = torch.eye(n, dtype=torch.float64, device=neighbors.device) - (
+        inv_sqrt.unsqueeze(-1) * adj * inv_sqrt.unsqueeze(-2))
+    _, vecs = torch.linalg.eigh(lap)
+    vecs = vecs[..., 1 : dim + 1]
+    if vecs.shape[-1] < dim:
+        vecs = nn.functional.pad(vecs, (0, dim - vecs.shape[-1]))
+    peak = vecs.gather(-2, vecs.abs().argmax(-2, keepdim=True))
+    return vecs * torch.where(peak < 0, -1.0, 1.0)
+
+
+@dataclass(frozen=True)
+class AttentionConfig:
+    """Network sizes (reference code: 128 dims, 4 heads, feed-forward 512, 32 PE dims)."""
+
+    n_features: int = len(FEATURE_SETS["ours"])
+    embed_dim: int = 128
+    heads: int = 4
+    ff_dim: int = 512
+    encoder_layers: int = 1
+    pe_dim: int = 32
+    clip: float = 10.0
+
+
+class AttentionPolicyNet(nn.Module):
+    """Masked pointer logits over the k neighbour slots, and a state value.
+
+    Example:
+        >>> net = AttentionPolicyNet(AttentionConfig(n_features=4, encoder_layers=1))
+        >>> x, pe = torch.rand(2, 30, 4), torch.rand(2, 30, 32)
+        >>> cur, nbr = torch.zeros(2, dtype=torch.long), torch.randint(0, 30, (2, 6))
+        >>> mask = torch.ones(2, 6, dtype=torch.bool)
+        >>> logits, value, state = net(x, pe, cur, torch.rand(2, 1), nbr, mask)
+        >>> logits.shape, value.shape
+        (torch.Size([2, 6]), torch.Size([2, 1]))
+    """
+
+    def __init__(self, cfg: AttentionConfig = AttentionConfig(), threshold: float = 0.4):
+        super().__init__()
+        d = cfg.embed_dim
+        self.cfg, self.threshold = cfg, threshold
+        self.embed = nn.Linear(cfg.n_features, d)
+        self.pos = nn.Linear(cfg.pe_dim, d)
+        layer = nn.TransformerEncoderLayer(d, cfg.heads, cfg.ff_dim, dropout=0.0,
+                                           batch_first=True, norm_first=True)
+        self.encoder = nn.TransformerEncoder(layer, cfg.encoder_layers,
+                                             enable_nested_tensor=False)
+        self.current = nn.Linear(d + 2, d)  # + remaining budget, interest threshold
+        self.lstm = nn.LSTMCell(d, d)
+        self.cross = nn.MultiheadAttention(d, cfg.heads, batch_first=True)
+        self.query = nn.Linear(d, d)
+        self.key = nn.Linear(d, d)
+        self.value_head = nn.Linear(d, 1)
+
+    def forward(
+        self,
+        features: torch.Tensor,
+        pos_enc: torch.Tensor,
+        current: torch.Tensor,
+        budget: torch.Tensor,
+        neighbors: torch.Tensor,
+        mask: torch.Tensor,
+        state: tuple[torch.Tensor, torch.Tensor] | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+        """Logits ``[B, k]`` (masked slots -inf), value ``[B, 1]``, new LSTM state.
+
+        Args:
+            features: ``[B, N, F]`` node features (a feature set's columns).
+            pos_enc: ``[B, N, pe_dim]`` Laplacian encoding of the roadmap.
+            current: ``[B]`` current node index.
+            budget: ``[B, 1]`` remaining budget fraction.
+            neighbors: ``[B, k]`` node index of each slot.
+            mask: ``[B, k]`` bool feasibility mask (at least one True per row).
+            state: LSTM ``(h, c)`` of the agent's trajectory so far, ``[B, 128]`` each.
+        """
+        b = features.shape[0]
+        h = self.encoder(self.embed(features) + self.pos(pos_enc))  # [B, N, d]
+        ar = torch.arange(b, device=h.device)
+        cur = h[ar, current]
+        thr = torch.full_like(budget, self.threshold)
+        cur = self.current(torch.cat([cur, budget, thr], -1))
+        state = self.lstm(cur, state)
+        q = state[0]
+        nbr = h[ar.unsqueeze(-1), neighbors]  # [B, k, d]
+        ctx, _ = self.cross(q.unsqueeze(1), nbr, nbr, key_padding_mask=~mask)
+        ctx = ctx.squeeze(1) + q
+        scores = (self.query(ctx).unsqueeze(1) * self.key(nbr)).sum(-1)
+        logits = self.cfg.clip * torch.tanh(scores / math.sqrt(h.shape[-1]))
+        logits = logits.masked_fill(~mask, -torch.inf)
+        return logits, self.value_head(ctx), state
