@@ -207,9 +207,12 @@ class MAIPPEnv(EnvBase):
         if self._state is None:
             which = torch.ones_like(which)  # the first reset builds every env
         idx = which.nonzero().squeeze(-1)
-        env_ids = idx
-        ik = rng.derive(self._seed_key, env_ids, self._episode[idx], 0)
-        tk = rng.derive(self._seed_key, env_ids, self._episode[idx], 1)
+        no_flags = torch.zeros(e, dtype=torch.bool, device=self.device)
+        if idx.numel() == 0:
+            return self._observe(self._state, no_flags, no_flags)
+        # Env e's k-th episode is keyed by (seed, e, k): independent of the batch size.
+        ik = rng.derive(self._seed_key, idx, self._episode[idx], 0)
+        tk = rng.derive(self._seed_key, idx, self._episode[idx], 1)
         if tensordict is not None:
             for name, tag, dst in (("instance_seed", _INSTANCE_TAG, ik),
                                    ("trial_seed", _TRIAL_TAG, tk)):
@@ -222,8 +225,7 @@ class MAIPPEnv(EnvBase):
             self._state = fresh
         else:
             self._state[idx] = fresh
-        return self._observe(self._state, torch.zeros(e, dtype=torch.bool, device=self.device),
-                             torch.zeros(e, dtype=torch.bool, device=self.device))
+        return self._observe(self._state, no_flags, no_flags)
 
     def _new_episodes(self, ik: torch.Tensor, tk: torch.Tensor) -> EpisodeState:
         cfg, dev = self.config, self.device
