@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Iterator
+from typing import NamedTuple
 
 import torch
 from tensordict import TensorDictBase
@@ -11,6 +12,16 @@ from maipp_bench.envs import rng
 from maipp_bench.envs.belief import GPBelief
 from maipp_bench.envs.dynamics import edge_points, sample_offsets
 from maipp_bench.envs.maipp_env import EpisodeState, MAIPPEnv
+
+
+class PlanStart(NamedTuple):
+    """What every SGA planner sets up before its rounds (see :meth:`PlannerPolicy.start`)."""
+
+    ar: torch.Tensor  # [E] env indices
+    held: torch.Tensor  # [E, m, R, 2] each agent's committed measurement points
+    held_mask: torch.Tensor  # [E, m, R]
+    contact: torch.Tensor  # [E, m, m] communication components
+    action: torch.Tensor  # [E, m] slots, zero for agents that do not decide
 
 
 class PlannerPolicy:
@@ -34,6 +45,14 @@ class PlannerPolicy:
         """Slots ``[E, m]`` for the deciding agents (others are ignored by the env)."""
         raise NotImplementedError
 
+    def start(self, st: EpisodeState) -> PlanStart:
+        """Committed points, contacts and an empty action table for this decision event."""
+        e, m = st.deciding.shape
+        held, held_mask = committed_points(self.env, st)
+        return PlanStart(torch.arange(e, device=self.env.device), held, held_mask,
+                         self.env.in_contact(),
+                         torch.zeros(e, m, dtype=torch.int64, device=self.env.device))
+
     def uniforms(self, st: EpisodeState, shape: tuple[int, ...], tag: int = 0) -> torch.Tensor:
         """Per-episode uniforms ``[E, *shape]`` keyed by (seed, step, tag)."""
         return rng.uniform(rng.derive(self.keys, st.steps, tag), shape)
@@ -49,7 +68,7 @@ def candidate_points(env: MAIPPEnv, st: EpisodeState) -> tuple[torch.Tensor, tor
     e, m, k = st.nbr.shape
     since = st.since_sample.unsqueeze(-1).expand(e, m, k)
     offsets, mask, _ = sample_offsets(since, st.nbr_len, env.config.sample_spacing)
-    src = nodes.gather(1, st.cur.unsqueeze(-1).expand(-1, -1, 2)).unsqueeze(2).expand(e, m, k, 2)
+    src = st.edge_ends()[0].unsqueeze(2).expand(e, m, k, 2)
     dst = nodes.gather(1, st.nbr.reshape(e, -1, 1).expand(-1, -1, 2)).view(e, m, k, 2)
     return edge_points(src, dst, st.nbr_len, offsets), mask
 
@@ -59,11 +78,9 @@ def committed_points(env: MAIPPEnv, st: EpisodeState) -> tuple[torch.Tensor, tor
 
     Returns ``points [E, m, R, 2]`` and ``mask [E, m, R]`` (empty for resting agents).
     """
-    nodes = st.roadmap.nodes
     left = torch.where(st.edge_len > 0, st.edge_len - st.progress, 0.0)
     offsets, mask, _ = sample_offsets(st.since_sample, left, env.config.sample_spacing)
-    src = nodes.gather(1, st.cur.unsqueeze(-1).expand(-1, -1, 2))
-    dst = nodes.gather(1, st.tgt.unsqueeze(-1).expand(-1, -1, 2))
+    src, dst = st.edge_ends()
     return edge_points(src, dst, st.edge_len, st.progress.unsqueeze(-1) + offsets), mask
 
 
@@ -128,3 +145,12 @@ def teammates_of(contact: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
     e, m, _ = contact.shape
     ar = torch.arange(e, device=contact.device)
     return contact[ar, a] & (torch.arange(m, device=contact.device) != a.unsqueeze(-1))
+
+
+def known_commitments(
+    held: torch.Tensor, held_mask: torch.Tensor, contact: torch.Tensor, a: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The committed points of agent ``a[e]``'s teammates in contact, flattened over agents:
+    ``[E, m*R, 2]`` and their mask."""
+    known = teammates_of(contact, a)
+    return held.flatten(1, 2), (held_mask & known.unsqueeze(-1)).flatten(1, 2)

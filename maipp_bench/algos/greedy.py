@@ -15,10 +15,9 @@ from maipp_bench.algos.base import (
     PlannerPolicy,
     append_points,
     candidate_points,
-    committed_points,
     conditioned_belief,
+    known_commitments,
     sga_rounds,
-    teammates_of,
 )
 from maipp_bench.algos.registry import register_policy
 from maipp_bench.envs.belief import interest_trace
@@ -37,17 +36,12 @@ class GreedyPolicy(PlannerPolicy):
         env, cfg = self.env, self.env.config
         e, m, k = st.mask.shape
         g2 = cfg.n_grid
-        ar = torch.arange(e, device=env.device)
+        ar, held, held_mask, contact, action = self.start(st)
         cand, cand_mask = candidate_points(env, st)  # [E, m, k, R, 2]
-        held, held_mask = committed_points(env, st)  # [E, m, R', 2]
-        contact = env.in_contact()
-        action = torch.zeros(e, m, dtype=torch.int64, device=env.device)
         noise = self.uniforms(st, (m, k))
         for a, active in sga_rounds(st):  # one round per deciding agent, all envs at once
             # Condition on the teammates' committed points this agent knows of.
-            known = teammates_of(contact, a)
-            team = held.flatten(1, 2)  # [E, m*R', 2]
-            team_mask = (held_mask & known.unsqueeze(-1)).flatten(1, 2)
+            team, team_mask = known_commitments(held, held_mask, contact, a)
             mu, belief = conditioned_belief(env, st, a, team, team_mask)
             var = belief.fantasy_variance(env.prior, st.query, cand[ar, a], cand_mask[ar, a],
                                           n_query=g2)

@@ -17,10 +17,9 @@ import torch
 from maipp_bench.algos.base import (
     PlannerPolicy,
     append_points,
-    committed_points,
     conditioned_belief,
+    known_commitments,
     sga_rounds,
-    teammates_of,
 )
 from maipp_bench.algos.paths import measurement_points, polyline_lengths
 from maipp_bench.algos.registry import register_policy
@@ -43,11 +42,8 @@ class OraclePolicy(PlannerPolicy):
     def act(self, st: EpisodeState) -> torch.Tensor:
         env, cfg = self.env, self.env.config
         e, m, k = st.mask.shape
-        g2, dev = cfg.n_grid, env.device
-        ar = torch.arange(e, device=dev)
-        held, held_mask = committed_points(env, st)
-        contact = env.in_contact()
-        action = torch.zeros(e, m, dtype=torch.int64, device=dev)
+        g2 = cfg.n_grid
+        ar, held, held_mask, contact, action = self.start(st)
         left = (cfg.team_budget - st.budget_used).clamp_min(0)
         max_pts = int((self.depth * st.roadmap.neighbor_dist.masked_fill(
             ~st.roadmap.neighbor_valid, 0).amax() + cfg.sample_spacing) / cfg.sample_spacing) + 1
@@ -59,8 +55,7 @@ class OraclePolicy(PlannerPolicy):
             length = polyline_lengths(walks, wmask).amax(-1).clamp_min(1e-9)
             since = st.since_sample[ar, a].unsqueeze(-1).expand(-1, walks.shape[1])
             pts, pmask = measurement_points(walks, wmask, since, cfg.sample_spacing, max_pts)
-            others = teammates_of(contact, a)
-            team, team_mask = held.flatten(1, 2), (held_mask & others.unsqueeze(-1)).flatten(1, 2)
+            team, team_mask = known_commitments(held, held_mask, contact, a)
             _, belief = conditioned_belief(env, st, a, team, team_mask, self._truth(st, team))
             values = self._truth(st, pts.flatten(1, 2)).view(pmask.shape)
             mean, var = belief.fantasy_posterior(env.prior, st.query, pts, values, pmask,

@@ -18,10 +18,9 @@ import torch
 
 from maipp_bench.algos.base import (
     PlannerPolicy,
-    committed_points,
     conditioned_belief,
+    known_commitments,
     sga_rounds,
-    teammates_of,
 )
 from maipp_bench.algos.paths import measurement_points, points_at, polyline_lengths
 from maipp_bench.algos.registry import register_policy
@@ -121,10 +120,7 @@ class SGARRTPolicy(PlannerPolicy):
         env, cfg = self.env, self.env.config
         e, m, k = st.mask.shape
         g2, dev = cfg.n_grid, env.device
-        ar = torch.arange(e, device=dev)
-        held, held_mask = committed_points(env, st)
-        contact = env.in_contact()
-        action = torch.zeros(e, m, dtype=torch.int64, device=dev)
+        ar, held, held_mask, contact, action = self.start(st)
         for a, active in sga_rounds(st):  # one round per deciding agent, all envs at once
             key = rng.derive(self.keys, st.steps, a)
             root = st.roadmap.nodes[ar, st.cur[ar, a]]
@@ -135,10 +131,10 @@ class SGARRTPolicy(PlannerPolicy):
                                             cfg.sample_spacing, self.max_points)
             pmask &= valid.unsqueeze(-1)
             # Condition on teammates' plans and remaining edges (those in contact).
-            others = teammates_of(contact, a)
-            team = torch.cat([held.flatten(1, 2), self.plans.flatten(1, 2)], 1)
-            team_mask = torch.cat([(held_mask & others.unsqueeze(-1)).flatten(1, 2),
-                                   (self.plan_mask & others.unsqueeze(-1)).flatten(1, 2)], 1)
+            held_pts, held_known = known_commitments(held, held_mask, contact, a)
+            plan_pts, plan_known = known_commitments(self.plans, self.plan_mask, contact, a)
+            team = torch.cat([held_pts, plan_pts], 1)
+            team_mask = torch.cat([held_known, plan_known], 1)
             mu, belief = conditioned_belief(env, st, a, team, team_mask)
             var = belief.fantasy_variance(env.prior, st.query, pts, pmask, n_query=g2)
             tr = interest_trace(mu.unsqueeze(1), var, cfg.interest_beta, cfg.interest_threshold)

@@ -30,7 +30,7 @@ METRICS = (
     "trace", "objective", "rmse", "distance", "time", "evidence_inside", "evidence_outside",
     "evidence_total", "traps", "measurements",
 )
-_COUNT_METRICS = {"evidence_inside", "evidence_outside", "evidence_total", "traps",
+COUNT_METRICS = {"evidence_inside", "evidence_outside", "evidence_total", "traps",
                   "measurements"}
 _INSTANCE_TAG, _TRIAL_TAG = 0x1A57, 0x7B1A  # explicit protocol seeds live in own streams
 
@@ -81,6 +81,13 @@ class EpisodeState:
     deciding: torch.Tensor  # [E, m]
     trace: torch.Tensor  # [E] Tr(P) of the team belief over X_I
     objective: torch.Tensor  # [E] AOI-weighted Tr(P) (the reward's Phi)
+
+    def edge_ends(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Positions of each agent's last node and target node, ``[E, m, 2]`` each."""
+        nodes = self.roadmap.nodes
+        src = nodes.gather(1, self.cur.unsqueeze(-1).expand(-1, -1, 2))
+        dst = nodes.gather(1, self.tgt.unsqueeze(-1).expand(-1, -1, 2))
+        return src, dst
 
 
 class MAIPPEnv(EnvBase):
@@ -166,7 +173,7 @@ class MAIPPEnv(EnvBase):
             shape=(e, m), device=dev,
         )
         metrics = Composite(
-            {name: Unbounded((e,), dtype=torch.int64 if name in _COUNT_METRICS else dt,
+            {name: Unbounded((e,), dtype=torch.int64 if name in COUNT_METRICS else dt,
                              device=dev) for name in METRICS},
             shape=(e,), device=dev,
         )
@@ -428,10 +435,16 @@ class MAIPPEnv(EnvBase):
 
     # ================================================================== motion
     def _positions(self, st: EpisodeState) -> torch.Tensor:
-        nodes = st.roadmap.nodes
-        src = nodes.gather(1, st.cur.unsqueeze(-1).expand(-1, -1, 2))
-        dst = nodes.gather(1, st.tgt.unsqueeze(-1).expand(-1, -1, 2))
+        src, dst = st.edge_ends()
         return edge_points(src, dst, st.edge_len, st.progress.unsqueeze(-1)).squeeze(-2)
+
+    def _contact(self, st: EpisodeState) -> torch.Tensor:
+        """``[E, m, m]``: agents in one communication component (reflexive)."""
+        if self.config.shared_belief:
+            e, m = st.cur.shape
+            return torch.ones(e, m, m, dtype=torch.bool, device=self.device)
+        pos = self._positions(st)
+        return reachability(torch.cdist(pos, pos) <= self.config.comm_range)
 
     def _travel(self, st: EpisodeState, travel: torch.Tensor) -> None:
         """Move agents ``travel [E, m]`` along their edges, measuring every 0.2."""
@@ -439,9 +452,7 @@ class MAIPPEnv(EnvBase):
         offsets, valid, st.since_sample = sample_offsets(st.since_sample, travel,
                                                          cfg.sample_spacing)
         if valid.shape[-1]:
-            nodes = st.roadmap.nodes
-            src = nodes.gather(1, st.cur.unsqueeze(-1).expand(-1, -1, 2))
-            dst = nodes.gather(1, st.tgt.unsqueeze(-1).expand(-1, -1, 2))
+            src, dst = st.edge_ends()
             pts = edge_points(src, dst, st.edge_len, st.progress.unsqueeze(-1) + offsets)
             e, m, r = valid.shape
             agent = torch.arange(m, device=self.device).view(1, m, 1).expand(e, m, r)
@@ -492,14 +503,9 @@ class MAIPPEnv(EnvBase):
     def _decision_event(self, st: EpisodeState, at_event: torch.Tensor) -> None:
         """Communicate, bring beliefs up to date, and find the agents that decide."""
         cfg, m = self.config, self.n_agents
-        e, big_m = st.meas_count.shape[0], st.known.shape[-1]
+        big_m = st.known.shape[-1]
         eye = torch.eye(m, dtype=torch.bool, device=self.device)
-        if cfg.shared_belief:
-            reach = torch.ones(e, m, m, dtype=torch.bool, device=self.device)
-        else:
-            pos = self._positions(st)
-            reach = reachability(torch.cdist(pos, pos) <= cfg.comm_range)
-        reach = torch.where(at_event[:, None, None], reach, eye)
+        reach = torch.where(at_event[:, None, None], self._contact(st), eye)
         # Connected agents merge measurement sets and exchange intents.
         st.known = (reach.to(torch.float32) @ st.known.to(torch.float32)) > 0
         link = reach & ~eye & st.intent_valid.unsqueeze(-2)  # [a, b]: a hears b
@@ -662,12 +668,7 @@ class MAIPPEnv(EnvBase):
 
     def in_contact(self) -> torch.Tensor:
         """``[E, m, m]`` bool: agents in one communication component now (reflexive)."""
-        st = self._require_state()
-        if self.config.shared_belief:
-            return torch.ones(self.n_envs, self.n_agents, self.n_agents, dtype=torch.bool,
-                              device=self.device)
-        pos = self._positions(st)
-        return reachability(torch.cdist(pos, pos) <= self.config.comm_range)
+        return self._contact(self._require_state())
 
     @property
     def agent_belief_index(self) -> torch.Tensor:

@@ -16,11 +16,10 @@ from tensordict import TensorDict
 from maipp_bench.algos.registry import MethodSpec
 from maipp_bench.envs import rng
 from maipp_bench.envs.config import MAIPPConfig
-from maipp_bench.envs.maipp_env import MAIPPEnv
+from maipp_bench.envs.maipp_env import COUNT_METRICS, METRICS, MAIPPEnv
 
-# Metrics copied into every row (from the env's ("metrics", name) at episode end).
-ROW_METRICS = ("trace", "objective", "rmse", "distance", "time", "evidence_inside",
-               "evidence_outside", "evidence_total", "traps", "measurements")
+# Every row carries all env metrics ("metrics", name) at the episode's first done.
+ROW_METRICS = METRICS
 
 
 def method_seeds(instance_seeds: list[int], trial_seed: int) -> torch.Tensor:
@@ -76,8 +75,7 @@ def run_chunk(
         row = {"instance": int(inst), "trial": int(trial_seed), "steps": int(steps[i])}
         for name in ROW_METRICS:
             v = float(final[name][i])
-            row[name] = int(v) if name in ("evidence_inside", "evidence_outside",
-                                            "evidence_total", "traps", "measurements") else v
+            row[name] = int(v) if name in COUNT_METRICS else v
         row["planning_s"] = planning / e  # batched planning time shared equally
         rows.append(row)
     return rows
