@@ -137,6 +137,7 @@ class _Snapshot:
         self.step = int(st.steps[i])
         self.time = float(st.time[i])
         self.used = float(st.budget_used[i])
+        self.pool = float(st.team_budget[i])
 
 
 def _intent_density(snap: _Snapshot) -> np.ndarray | None:
@@ -268,7 +269,6 @@ class _Painter:
         self.dynamic = sorted(dynamic + spines, key=lambda a: a.get_zorder()) + [self.suptitle]
 
     def update(self, snap: _Snapshot) -> Figure:
-        cfg = self.cfg
         self.images[0].set_data(snap.mu)
         self.images[1].set_data(snap.truth)
         self.images[2].set_data(snap.risk)
@@ -306,7 +306,7 @@ class _Painter:
         found, total = int(snap.found.sum()), len(snap.found)
         self.suptitle.set_text(
             f"step {snap.step}   time {snap.time:.2f}   budget used {snap.used:.2f} / "
-            f"{cfg.team_budget:g}   Tr(P) {snap.trace:.1f}   RMSE {snap.rmse:.3f}   "
+            f"{snap.pool:g}   Tr(P) {snap.trace:.1f}   RMSE {snap.rmse:.3f}   "
             f"evidence {found} / {total}   trapped {int(snap.trapped.sum())}")
         return self.fig
 

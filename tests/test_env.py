@@ -820,3 +820,42 @@ def test_cuda_rollout_matches_cpu():
     for key in (("next", "agents", "observation", "node_features"), ("next", "metrics", "trace"),
                 ("next", "agents", "reward")):
         assert torch.allclose(cpu[key], gpu[key], rtol=1e-9, atol=1e-9), key
+
+
+def test_budget_drawn_per_episode_is_respected():
+    """budget_min > 0 (training across a suite's range): each episode draws its own pool,
+    the distance never exceeds it, and the budget feature is relative to it."""
+    env = make_env(16, seed=4, budget=3.0, budget_min=1.0)
+    td = env.rollout(160, break_when_any_done=False)
+    pools = env.episode.team_budget
+    m = env.n_agents
+    assert float(pools.min()) >= m * 1.0 and float(pools.max()) <= m * 3.0
+    assert len(set(pools.tolist())) == 16  # drawn per env, not shared
+    done = td["next", "done"].squeeze(-1)
+    assert int(done.sum()) > 16
+    # At an episode's end: distance <= its pool and the feature matches (pool - used) / pool.
+    used = td["next", "metrics", "distance"]
+    left = td["next", "agents", "observation", "budget"][..., 0, 0]
+    pool_now = used / (1 - left).clamp_min(1e-12)
+    ok = left < 1 - 1e-6
+    assert float(pool_now[ok].max()) <= m * 3.0 + 1e-6
+    assert float(pool_now[ok].min()) >= m * 1.0 - 1e-6
+    # Draws are keyed by the episode, not the batch: same pools at E=16 and E=4.
+    small = make_env(4, seed=4, budget=3.0, budget_min=1.0)
+    small.reset()
+    env2 = make_env(16, seed=4, budget=3.0, budget_min=1.0)
+    env2.reset()
+    assert torch.equal(small.episode.team_budget, env2.episode.team_budget[:4])
+    with pytest.raises(ValueError, match="budget_min"):
+        MAIPPConfig(budget=2.0, budget_min=2.5)
+
+
+def test_node_encoding_key():
+    env = make_env(3, seed=5, n_nodes=30, k_neighbors=6, node_encoding_dim=8)
+    check_env_specs(env, seed=5)
+    td = env.reset()
+    rm = env.episode.roadmap
+    from maipp_bench.envs.roadmap import laplacian_encoding
+
+    assert torch.equal(td["node_encoding"], laplacian_encoding(rm.neighbors, rm.neighbor_valid, 8))
+    assert "node_encoding" not in make_env(2, n_nodes=30, k_neighbors=6).reset().keys()

@@ -19,6 +19,7 @@ import torch
 from torch import nn
 
 from maipp_bench.envs.maipp_env import NODE_FEATURES
+from maipp_bench.envs.roadmap import laplacian_encoding  # noqa: F401  (re-exported)
 
 # Which node features each method sees (paper: ours adds risk and intent to CAtNIPP's).
 FEATURE_SETS: dict[str, tuple[str, ...]] = {
@@ -32,32 +33,6 @@ def feature_columns(feature_set: str) -> list[int]:
     if feature_set not in FEATURE_SETS:
         raise ValueError(f"unknown feature set {feature_set!r}; valid: {sorted(FEATURE_SETS)}")
     return [NODE_FEATURES.index(name) for name in FEATURE_SETS[feature_set]]
-
-
-def laplacian_encoding(
-    neighbors: torch.Tensor, valid: torch.Tensor, dim: int = 32
-) -> torch.Tensor:
-    """Laplacian positional encoding of roadmaps: ``[E, N, k]`` slots -> ``[E, N, dim]``.
-
-    Eigenvectors of the symmetric normalised Laplacian I - D^-1/2 A D^-1/2 of the
-    symmetrised k-NN graph (the reference code built I - D^-1/2 A by mistake), for the
-    ``dim`` smallest eigenvalues after the first (constant) one; each vector's sign is
-    fixed so that its largest-magnitude entry is positive (eigenvectors have no sign).
-    """
-    e, n, _ = neighbors.shape
-    adj = torch.zeros(e, n, n, dtype=torch.float64, device=neighbors.device)
-    adj.scatter_(-1, neighbors, valid.to(torch.float64))
-    adj = ((adj + adj.transpose(-1, -2)) > 0).to(torch.float64)
-    deg = adj.sum(-1).clamp_min(1.0)
-    inv_sqrt = deg.rsqrt()
-    lap = torch.eye(n, dtype=torch.float64, device=neighbors.device) - (
-        inv_sqrt.unsqueeze(-1) * adj * inv_sqrt.unsqueeze(-2))
-    _, vecs = torch.linalg.eigh(lap)
-    vecs = vecs[..., 1 : dim + 1]
-    if vecs.shape[-1] < dim:
-        vecs = nn.functional.pad(vecs, (0, dim - vecs.shape[-1]))
-    peak = vecs.gather(-2, vecs.abs().argmax(-2, keepdim=True))
-    return vecs * torch.where(peak < 0, -1.0, 1.0)
 
 
 @dataclass(frozen=True)

@@ -44,7 +44,7 @@ class OraclePolicy(PlannerPolicy):
         e, m, k = st.mask.shape
         g2 = cfg.n_grid
         ar, held, held_mask, contact, action = self.start(st)
-        left = (cfg.team_budget - st.budget_used).clamp_min(0)
+        left = (st.team_budget - st.budget_used).clamp_min(0)
         max_pts = int((self.depth * st.roadmap.neighbor_dist.masked_fill(
             ~st.roadmap.neighbor_valid, 0).amax() + cfg.sample_spacing) / cfg.sample_spacing) + 1
         for a, active in sga_rounds(st):  # one round per deciding agent, all envs at once

@@ -35,6 +35,7 @@ class MAIPPConfig:
     # --- team and budget ------------------------------------------------------------
     n_agents: int = 3  # paper: m = 3 in training and Table 1
     budget: float = 3.0  # per-agent equivalent budget B; ours: default mid-range of Table 1
+    budget_min: float = 0.0  # ours: > 0 draws each episode's B uniformly from [budget_min, budget]
     max_steps: int = 1000  # ours: safety cap; episodes normally end on the budget
 
     # --- world (ground truth) -----------------------------------------------------
@@ -68,6 +69,7 @@ class MAIPPConfig:
     # --- roadmap and motion ----------------------------------------------------------
     n_nodes: int = 200  # paper: 200 PRM nodes (plus the start node)
     k_neighbors: int = 20  # paper: k = 20 nearest neighbours
+    node_encoding_dim: int = 0  # ours: > 0 adds the roadmap's Laplacian encoding (paper: 32)
     sample_spacing: float = 0.2  # paper: a measurement every 0.2 of travelled path
     prune_risky_nodes: bool = False  # paper: baselines without risk get risky nodes removed
 
@@ -121,7 +123,8 @@ class MAIPPConfig:
 
     @property
     def team_budget(self) -> float:
-        """B_team = m * B: the shared pool every move draws from."""
+        """B_team = m * B: the shared pool every move draws from (its largest value when
+        ``budget_min`` > 0 draws B per episode)."""
         return self.n_agents * self.budget
 
     @property
@@ -171,6 +174,8 @@ class MAIPPConfig:
         rules = [
             ("n_agents", lambda v: v >= 1, "an int >= 1"),
             ("budget", lambda v: v > 0 and finite(v), "a finite number > 0"),
+            ("budget_min", lambda v: 0 <= v <= self.budget,
+             f"a number in [0, budget] = [0, {self.budget}] (0: fixed budget)"),
             ("max_steps", lambda v: v >= 1, "an int >= 1"),
             ("grid_size", lambda v: v >= 2, "an int >= 2"),
             ("interest_bumps_min", lambda v: v >= 1, "an int >= 1"),
@@ -198,6 +203,8 @@ class MAIPPConfig:
             ("n_nodes", lambda v: v >= 2, "an int >= 2"),
             ("k_neighbors", lambda v: 1 <= v < self.n_nodes,
              f"an int in [1, n_nodes) = [1, {self.n_nodes})"),
+            ("node_encoding_dim", lambda v: 0 <= v <= self.n_nodes,
+             f"an int in [0, n_nodes] = [0, {self.n_nodes}] (0: no encoding key)"),
             ("sample_spacing", lambda v: 0 < v and finite(v), "a finite number > 0"),
             ("risk_mask_threshold", lambda v: finite(v), "a finite number"),
             ("trap_threshold", lambda v: finite(v), "a finite number"),

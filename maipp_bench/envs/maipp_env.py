@@ -20,7 +20,7 @@ from maipp_bench.envs.belief import GPBelief, GPPrior, interest_trace
 from maipp_bench.envs.config import MAIPPConfig
 from maipp_bench.envs.dynamics import EPS, edge_points, reachability, sample_offsets
 from maipp_bench.envs.intent import check_intent, intent_feature
-from maipp_bench.envs.roadmap import Roadmap, build_roadmap
+from maipp_bench.envs.roadmap import Roadmap, build_roadmap, laplacian_encoding
 from maipp_bench.envs.world import World, generate_world, grid_points
 
 # Per-node observation features, in order (docs/environment.md).
@@ -33,6 +33,7 @@ METRICS = (
 COUNT_METRICS = {"evidence_inside", "evidence_outside", "evidence_total", "traps",
                   "measurements"}
 _INSTANCE_TAG, _TRIAL_TAG = 0x1A57, 0x7B1A  # explicit protocol seeds live in own streams
+_BUDGET_TAG = 0xB0D6
 
 
 @tensorclass
@@ -53,6 +54,7 @@ class EpisodeState:
     noise_key: torch.Tensor  # [E] int64
     time: torch.Tensor  # [E]
     steps: torch.Tensor  # [E] int64
+    team_budget: torch.Tensor  # [E] the episode's shared pool m * B
     budget_used: torch.Tensor  # [E] team distance committed so far
     cur: torch.Tensor  # [E, m] last node reached
     tgt: torch.Tensor  # [E, m] node being travelled to (== cur when resting)
@@ -81,6 +83,7 @@ class EpisodeState:
     deciding: torch.Tensor  # [E, m]
     trace: torch.Tensor  # [E] Tr(P) of the team belief over X_I
     objective: torch.Tensor  # [E] AOI-weighted Tr(P) (the reward's Phi)
+    node_encoding: torch.Tensor  # [E, N, D] Laplacian encoding of the roadmap (D may be 0)
 
     def edge_ends(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Positions of each agent's last node and target node, ``[E, m, 2]`` each."""
@@ -183,6 +186,9 @@ class MAIPPEnv(EnvBase):
             metrics=metrics,
             shape=(e,), device=dev,
         )
+        if cfg.node_encoding_dim:
+            self.observation_spec["node_encoding"] = Unbounded(
+                (e, n, cfg.node_encoding_dim), dtype=dt, device=dev)
         self.action_spec = Composite(
             agents=Composite(action=Categorical(k, (e, m), device=dev), shape=(e, m),
                              device=dev),
@@ -253,6 +259,14 @@ class MAIPPEnv(EnvBase):
         i64 = dict(dtype=torch.int64, device=dev)
         b = dict(dtype=torch.bool, device=dev)
         zeros_em = torch.zeros(e, m, **f64)
+        team_budget = torch.full((e,), cfg.team_budget, **f64)
+        if cfg.budget_min > 0:  # training across a suite's budgets: B ~ U[budget_min, budget]
+            u = rng.uniform(rng.derive(tk, _BUDGET_TAG), ())
+            team_budget = m * (cfg.budget_min + (cfg.budget - cfg.budget_min) * u)
+        encoding = torch.zeros(e, n_nodes, 0, dtype=cfg.torch_dtype, device=dev)
+        if cfg.node_encoding_dim:
+            encoding = laplacian_encoding(roadmap.neighbors, roadmap.neighbor_valid,
+                                          cfg.node_encoding_dim).to(cfg.torch_dtype)
         st = EpisodeState(
             world=world,
             roadmap=roadmap,
@@ -269,6 +283,7 @@ class MAIPPEnv(EnvBase):
             noise_key=rng.derive(ik, tk),
             time=torch.zeros(e, **f64),
             steps=torch.zeros(e, **i64),
+            team_budget=team_budget,
             budget_used=torch.zeros(e, **f64),
             cur=torch.zeros(e, m, **i64),
             tgt=torch.zeros(e, m, **i64),
@@ -297,6 +312,7 @@ class MAIPPEnv(EnvBase):
             deciding=torch.zeros(e, m, **b),
             trace=torch.zeros(e, **f64),
             objective=torch.zeros(e, **f64),
+            node_encoding=encoding,
             batch_size=[e],
         )
         # Every agent measures at the shared start node (PROTOCOL: "at the start").
@@ -386,7 +402,8 @@ class MAIPPEnv(EnvBase):
         collided = deciding & clash.any(-1)
         accepted = deciding & ~collided
         committed = torch.cumsum(torch.where(accepted, length, 0.0), dim=-1)
-        overflow = accepted & (st.budget_used.unsqueeze(-1) + committed > cfg.team_budget + EPS)
+        pool = st.team_budget.unsqueeze(-1)
+        overflow = accepted & (st.budget_used.unsqueeze(-1) + committed > pool + EPS)
         accepted &= ~overflow
         backtrack = accepted & (tgt.unsqueeze(-1) == st.history).any(-1)
         f64 = penalty.dtype
@@ -553,7 +570,7 @@ class MAIPPEnv(EnvBase):
         st.nbr = rm.neighbors.gather(1, idx)
         st.nbr_len = rm.neighbor_dist.gather(1, idx)
         ok = rm.neighbor_valid.gather(1, idx)
-        ok &= st.nbr_len <= (cfg.team_budget - st.budget_used)[:, None, None] + EPS
+        ok &= st.nbr_len <= (st.team_budget - st.budget_used)[:, None, None] + EPS
         # Node collision: no two agents may target one node (a resting agent targets its own).
         m = self.n_agents
         other = ~torch.eye(m, dtype=torch.bool, device=self.device)
@@ -598,7 +615,7 @@ class MAIPPEnv(EnvBase):
             feats = per_belief.expand(e, m, n, len(NODE_FEATURES))
         else:
             feats = per_belief.index_select(1, self._agent_belief)
-        budget_left = ((cfg.team_budget - st.budget_used) / cfg.team_budget).clamp(0, 1).to(dt)
+        budget_left = ((st.team_budget - st.budget_used) / st.team_budget).clamp(0, 1).to(dt)
 
         targeting = (st.tgt.unsqueeze(-1) == torch.arange(n, device=self.device)).sum(1)
         state = torch.cat(
@@ -642,6 +659,8 @@ class MAIPPEnv(EnvBase):
             truncated=truncated.unsqueeze(-1).clone(),
             batch_size=bs,
         )
+        if cfg.node_encoding_dim:
+            out.set("node_encoding", st.node_encoding.clone())
         # The action spec carries the live mask, so random actions (env.rand_action,
         # rollouts without a policy) respect it without any transform.
         self.full_action_spec[("agents", "action")].update_mask(st.mask.clone())
