@@ -1,0 +1,314 @@
+"""``python -m maipp_bench.train algo=ours``: PPO on the batched MAIPP env (Hydra CLI).
+
+Reads top to bottom: one update = collect a batch with TorchRL's ``Collector`` (every
+env reset from a seed of (seed, update), so a resumed run replays exactly what an
+uninterrupted one would), turn env steps into per-agent decisions with GAE
+(:mod:`maipp_bench.algos.decisions`), then ``epochs`` passes of minibatches from a
+TorchRL replay buffer through ``ClipPPOLoss`` / ``MAPPOLoss``. Every
+``checkpoint_every`` updates the whole training state is written atomically to
+``<run>/checkpoint.pt``; ``resume=<path>`` continues it (same curve, same run folder).
+
+Config groups (``maipp_bench/conf``): ``algo`` (ours, catnipp, mappo), ``env``
+(risk_aware, tiny), ``logger`` (csv, wandb, tensorboard); any field can be overridden,
+e.g. ``python -m maipp_bench.train algo=catnipp n_envs=16 algo.lr=5e-5 env.budget=4``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import platform
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import hydra
+import torch
+from hydra.core.config_store import ConfigStore
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import OmegaConf
+from tensordict import TensorDict, TensorDictBase
+from torchrl.collectors import Collector
+from torchrl.data import Composite, LazyTensorStorage, ReplayBuffer, Unbounded
+from torchrl.data.replay_buffers import SamplerWithoutReplacement
+from torchrl.envs import Compose, TensorDictPrimer, Transform, TransformedEnv
+from tqdm import tqdm
+
+from maipp_bench.algos.checkpoint import FORMAT, atomic_save, export_policy
+from maipp_bench.algos.decisions import decision_batch
+from maipp_bench.algos.modules import HIDDEN_KEY, TeamPolicy, decision_rows
+from maipp_bench.algos.ppo import AlgoConfig, Learner, build_learner
+from maipp_bench.algos.registry import MethodSpec
+from maipp_bench.envs import rng
+from maipp_bench.envs.config import MAIPPConfig
+from maipp_bench.envs.maipp_env import MAIPPEnv
+from maipp_bench.protocol.protocol import load_protocol
+from maipp_bench.protocol.runner import run_chunk
+
+HELDOUT_SEED_BASE = 2**40  # periodic evaluation episodes: never the protocol's seeds
+
+_PY_TYPES = {"int": int, "float": float, "bool": bool, "str": str}
+# The env group's schema: every MAIPPConfig field, typed (MAIPPConfig validates ranges).
+EnvSchema = dataclasses.make_dataclass("EnvSchema", [
+    (f.name, _PY_TYPES[f.type] if isinstance(f.type, str) else f.type, f.default)
+    for f in dataclasses.fields(MAIPPConfig)
+])
+
+
+@dataclass
+class LoggerConfig:
+    """Where scalars go besides ``<run>/curve.jsonl`` (always written)."""
+
+    backend: str = "csv"  # csv | wandb | tensorboard
+    project: str = "maipp_bench"
+    offline: bool = True  # wandb: never needs the network unless asked
+
+
+@dataclass
+class TrainConfig:
+    """``python -m maipp_bench.train``'s config (defaults: conf/train.yaml)."""
+
+    algo: AlgoConfig = field(default_factory=AlgoConfig)
+    env: Any = field(default_factory=EnvSchema)
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
+    seed: int = 0
+    device: str = "cpu"
+    threads: int = 1  # torch threads (1 is fastest for this batched work on CPU)
+    n_envs: int = 8  # envs stepped together
+    steps_per_batch: int = 160  # env steps per env per update (> one episode at B = 5)
+    total_updates: int = 200
+    max_minutes: float = 0.0  # > 0: stop (after a checkpoint) once this much wall time is used
+    checkpoint_every: int = 5
+    eval_every: int = 10  # greedy evaluation on held-out seeds (0: never)
+    eval_episodes: int = 16
+    eval_budget: float = 3.0
+    resume: str | None = None
+    export: str | None = None  # at the end: write the policy file + JSON card here
+    progress: bool = True
+
+
+ConfigStore.instance().store(name="train_schema", node=TrainConfig)
+
+
+def _logger(cfg: Any, run_dir: Path) -> Any:
+    from torchrl.record.loggers import CSVLogger, TensorboardLogger, WandbLogger
+
+    name = f"{cfg.algo.name}"
+    loggers = {
+        "csv": lambda: CSVLogger(name, log_dir=str(run_dir / "logs")),
+        "tensorboard": lambda: TensorboardLogger(name, log_dir=str(run_dir / "logs")),
+        "wandb": lambda: WandbLogger(name, offline=cfg.logger.offline, save_dir=str(run_dir),
+                                     project=cfg.logger.project),
+    }
+    if cfg.logger.backend not in loggers:
+        raise ValueError(f"logger.backend={cfg.logger.backend!r}; valid: {sorted(loggers)}")
+    return loggers[cfg.logger.backend]()
+
+
+class Materialise(Transform):
+    """Give the agents' node features their own memory: with one shared belief the env
+    returns an expanded view (one copy for all agents), which collectors cannot update
+    in place."""
+
+    KEY = ("agents", "observation", "node_features")
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        next_tensordict.set(self.KEY, next_tensordict.get(self.KEY).contiguous())
+        return next_tensordict
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
+               ) -> TensorDictBase:
+        return self._call(tensordict_reset)
+
+
+def make_env(env_cfg: MAIPPConfig, n_envs: int, hidden_dim: int, device: str) -> TransformedEnv:
+    """The training env: MAIPPEnv with the Laplacian encoding and zeroed LSTM states at
+    every (partial) reset, held under ``("agents", "hidden")``."""
+    base = MAIPPEnv(env_cfg, batch_size=[n_envs], device=device)
+    m = env_cfg.n_agents
+    spec = Composite(agents=Composite(hidden=Unbounded((n_envs, m, 2, hidden_dim),
+                                                       device=device), shape=(n_envs, m)),
+                     shape=(n_envs,), device=device)
+    return TransformedEnv(base, Compose(Materialise(), TensorDictPrimer(spec, expand_specs=False)))
+
+
+def _bootstrap(learner: Learner, last: TensorDict) -> torch.Tensor:
+    """``[E, m]``: every agent's value after the batch's last step."""
+    e, m = last.get(("agents", "deciding")).shape
+    e_idx = torch.arange(e).repeat_interleave(m)
+    a_idx = torch.arange(m).repeat(e)
+    rows = decision_rows(last, e_idx, a_idx, last.get(HIDDEN_KEY))
+    with torch.no_grad():
+        if learner.critic is not None:
+            value = learner.critic(rows).get("state_value")
+        else:
+            value = learner.actor.module[0](rows).get("live_value")
+    return value.view(e, m)
+
+
+def evaluate(learner: Learner, env_cfg: MAIPPConfig, cfg: Any) -> dict[str, float]:
+    """Greedy episodes on held-out seeds at ``eval_budget`` (never the protocol's seeds)."""
+    seeds = [HELDOUT_SEED_BASE + i for i in range(cfg.eval_episodes)]
+    eval_cfg = env_cfg.replace(budget=cfg.eval_budget, budget_min=0.0, node_encoding_dim=0)
+    method = MethodSpec(name=f"{cfg.algo.name}_greedy", policy="attention", models_risk=True,
+                        params={"mode": "greedy"}, learned=True)
+    rows = run_chunk(method, eval_cfg, seeds, trial_seed=HELDOUT_SEED_BASE, core=learner.core)
+    n = len(rows)
+    return {f"eval/{k}": sum(r[k] for r in rows) / n for k in ("trace", "rmse", "traps")}
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
+                              cwd=Path(__file__).parent, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def train(cfg: Any, run_dir: Path) -> Path:
+    """Train the configured method into ``run_dir``; returns the checkpoint path."""
+    torch.set_num_threads(cfg.threads)
+    env_cfg = MAIPPConfig.from_dict(OmegaConf.to_container(cfg.env))
+    if env_cfg.node_encoding_dim < 1:
+        raise ValueError("env.node_encoding_dim must be >= 1: the network reads the "
+                         "roadmap's Laplacian encoding (paper: 32)")
+    # Disjoint from every protocol seed, so training never sees the leaderboard's episodes.
+    protocol_seeds = {s for suite in load_protocol(1).suites.values()
+                      for s in (*suite.instance_seeds, *suite.trial_seeds)}
+    assert not protocol_seeds & {HELDOUT_SEED_BASE + i for i in range(cfg.eval_episodes)}
+
+    learner = build_learner(cfg.algo, env_cfg.node_encoding_dim, env_cfg.interest_threshold)
+    optim = torch.optim.Adam(learner.parameters(), lr=cfg.algo.lr)
+    sched = torch.optim.lr_scheduler.StepLR(optim, cfg.algo.lr_decay_every, cfg.algo.lr_decay)
+    ckpt_path = run_dir / "checkpoint.pt"
+    start, frames, episodes, wall, curve = 0, 0, 0, 0.0, []
+    if cfg.resume:
+        state = torch.load(cfg.resume, map_location=cfg.device, weights_only=False)
+        learner.loss.load_state_dict(state["loss"])
+        optim.load_state_dict(state["optimizer"])
+        sched.load_state_dict(state["scheduler"])
+        start, frames, episodes = state["update"], state["frames"], state["episodes"]
+        wall, curve = state["wall_s"], state["curve"]
+        ckpt_path = Path(cfg.resume)
+        run_dir = ckpt_path.parent
+    (run_dir / "curve.jsonl").write_text("".join(json.dumps(r) + "\n" for r in curve))
+
+    env = make_env(env_cfg, cfg.n_envs, learner.core.hidden_dim, cfg.device)
+    policy = TeamPolicy(learner.actor, learner.critic, learner.core.hidden_dim)
+    collector = Collector(env, policy, frames_per_batch=cfg.n_envs * cfg.steps_per_batch,
+                          total_frames=-1, auto_register_policy_transforms=False)
+    buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.n_envs * cfg.steps_per_batch
+                                                    * env_cfg.n_agents),
+                          sampler=SamplerWithoutReplacement(), batch_size=cfg.algo.minibatch)
+    logger = _logger(cfg, run_dir)
+    bar = tqdm(total=cfg.total_updates, initial=start, desc=f"train {cfg.algo.name}",
+               unit="upd", disable=not cfg.progress, dynamic_ncols=True)
+
+    def save(update: int) -> None:
+        atomic_save({
+            "format": FORMAT, "update": update, "frames": frames, "episodes": episodes,
+            "wall_s": wall, "curve": curve, "core": learner.core.state_dict(),
+            "loss": learner.loss.state_dict(), "optimizer": optim.state_dict(),
+            "scheduler": sched.state_dict(), "algo": OmegaConf.to_container(cfg.algo),
+            "env": env_cfg.to_dict(), "config": OmegaConf.to_container(cfg),
+        }, ckpt_path)
+
+    for update in range(start, cfg.total_updates):
+        t0 = time.perf_counter()
+        # --- collect: every env starts fresh episodes from a seed of (seed, update)
+        useed = int(rng.derive(rng.seed_key(cfg.seed), update)) & (2**62 - 1)
+        torch.manual_seed(useed)
+        env.set_seed(useed)
+        collector.reset()
+        learner.core.eval()
+        batch = collector.next()
+        rows = decision_batch(batch, _bootstrap(learner, batch[:, -1].get("next")),
+                              cfg.algo.gamma, cfg.algo.lmbda)
+        done = batch.get(("next", "done")).squeeze(-1)
+        frames += batch.numel()
+        episodes += int(done.sum())
+        # --- learn: epochs x minibatches of decisions
+        learner.core.train()
+        buffer.empty()
+        buffer.extend(rows)
+        stats: dict[str, list[float]] = {}
+        for _ in range(cfg.algo.epochs):
+            for minibatch in buffer:
+                out = learner.loss(minibatch)
+                total = sum(v for k, v in out.items() if k.startswith("loss_"))
+                optim.zero_grad()
+                total.backward()
+                torch.nn.utils.clip_grad_norm_(learner.parameters(), cfg.algo.grad_clip)
+                optim.step()
+                for k, v in out.items():
+                    stats.setdefault(k, []).append(float(v.detach().mean()))
+        sched.step()
+        wall += time.perf_counter() - t0
+        # --- log
+        final = batch.get(("next", "metrics"))[done]
+        row = {"update": update + 1, "frames": frames, "episodes": episodes,
+               "decisions": rows.numel(), "wall_s": round(wall, 2),
+               "lr": sched.get_last_lr()[0],
+               "reward_per_decision": float(rows.get("reward").mean()),
+               "trace_final": float(final.get("trace").mean()) if final.numel() else math.nan,
+               "traps": float(final.get("traps").float().mean()) if final.numel() else math.nan,
+               **{k: sum(v) / len(v) for k, v in stats.items()}}
+        if cfg.eval_every and (update + 1) % cfg.eval_every == 0:
+            learner.core.eval()
+            row.update(evaluate(learner, env_cfg, cfg))
+        curve.append(row)
+        with open(run_dir / "curve.jsonl", "a") as f:
+            f.write(json.dumps(row) + "\n")
+        for k, v in row.items():
+            if k != "update" and isinstance(v, float) and math.isfinite(v):
+                logger.log_scalar(k, v, step=frames)
+        bar.update(1)
+        bar.set_postfix(frames=frames, episodes=episodes,
+                        reward=f"{row['reward_per_decision']:.3f}",
+                        trace=f"{row['trace_final']:.1f}")
+        out_of_time = cfg.max_minutes > 0 and wall >= 60 * cfg.max_minutes
+        if (update + 1) % cfg.checkpoint_every == 0 or update + 1 == cfg.total_updates \
+                or out_of_time:
+            save(update + 1)
+        if out_of_time:
+            break
+    bar.close()
+    collector.shutdown()
+    if cfg.export:
+        write_card(cfg, ckpt_path, Path(cfg.export))
+    return ckpt_path
+
+
+def write_card(cfg: Any, ckpt_path: Path, out: Path) -> None:
+    """The shipped policy file and its JSON card (command, seed, commit, time, machine)."""
+    export_policy(ckpt_path, out)
+    state = torch.load(out, map_location="cpu", weights_only=False)
+    card = {
+        "algo": cfg.algo.name,
+        "command": "python -m maipp_bench.train " + " ".join(sys.argv[1:]),
+        "seed": cfg.seed,
+        "commit": _commit(),
+        "updates": state["update"],
+        "frames": state["frames"],
+        "wall_s": state["wall_s"],
+        "machine": f"{platform.machine()} {platform.processor() or ''}".strip()
+        + f", {torch.get_num_threads()} torch thread(s), device {cfg.device}",
+        "curve": state["curve"],
+    }
+    out.with_suffix(".json").write_text(json.dumps(card, indent=1) + "\n")
+
+
+@hydra.main(version_base=None, config_path="conf", config_name="train")
+def main(cfg: Any) -> None:
+    """Hydra entry point: the run folder is Hydra's output folder."""
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    path = train(cfg, run_dir)
+    print(f"checkpoint: {path}")
+
+
+if __name__ == "__main__":
+    main()
