@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from maipp_bench import algos
 from maipp_bench.protocol import leaderboard
-from maipp_bench.protocol.protocol import load_protocol
+from maipp_bench.protocol.protocol import file_sha256, load_protocol
 from maipp_bench.protocol.runner import run_chunk
 from maipp_bench.protocol.store import ResultStore
 
@@ -72,6 +72,8 @@ def _checkpoints(pairs: list[str], methods: list[str]) -> dict[str, dict]:
         if name not in methods:
             raise SystemExit(f"error: --checkpoint for {name!r}, which is not among the "
                              f"methods being run: {methods}")
+        if not algos.get_method(name).learned:
+            raise SystemExit(f"error: --checkpoint for {name!r}, which is not a learned method")
         if not Path(path).exists():
             raise SystemExit(f"error: checkpoint {path!r} for {name!r} does not exist")
         out[name] = {"checkpoint": path}
@@ -101,6 +103,23 @@ def main(argv: list[str] | None = None) -> dict:
             print(f"note: suite methods not available in this build, skipped: {missing}",
                   file=sys.stderr)
     policy_kwargs = _checkpoints(args.checkpoint, methods)
+    # Learned methods: the checkpoint each runs, recorded with every row (rows of another
+    # checkpoint are neither reused nor reported). Suite defaults without a shipped
+    # checkpoint are skipped with a note; asked-for ones are an error.
+    checkpoints: dict[str, dict[str, str]] = {}
+    for name in list(methods):
+        try:
+            path = algos.get_method(name).checkpoint(policy_kwargs.get(name, {}).get("checkpoint"))
+        except FileNotFoundError as err:
+            if args.methods:
+                raise SystemExit(f"error: {name}: {err}") from None
+            print(f"note: {name} skipped: {err}", file=sys.stderr)
+            methods.remove(name)
+            continue
+        if path is not None:
+            checkpoints[name] = {"path": str(path), "sha256": file_sha256(path)}
+            policy_kwargs.setdefault(name, {})["checkpoint"] = str(path)
+    match = {m: {"checkpoint_sha256": c["sha256"]} for m, c in checkpoints.items()}
     settings = list(suite.settings)
     if args.budgets:
         budgets = set(args.budgets)
@@ -124,7 +143,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     chunks = []
     for method in methods:
-        done = store.done(method)
+        done = store.done(method, **match.get(method, {}))
         for setting in settings:
             for t_idx, trial in enumerate(trials):
                 insts = instances
@@ -140,7 +159,7 @@ def main(argv: list[str] | None = None) -> dict:
     def store_chunk(method: str, setting_key: str, rows: list[dict]) -> None:
         for r in rows:
             r.update(method=method, setting=setting_key, protocol_version=protocol.version,
-                     protocol_sha256=protocol.sha256)
+                     protocol_sha256=protocol.sha256, **match.get(method, {}))
         store.append(method, rows)
         bar.update(len(rows))
 
@@ -168,12 +187,14 @@ def main(argv: list[str] | None = None) -> dict:
                     os._exit(3)
     bar.close()
 
-    rows_by_method = {m: [r for r in store.rows(m) if r["protocol_sha256"] == protocol.sha256]
+    rows_by_method = {m: [r for r in store.rows(m) if r["protocol_sha256"] == protocol.sha256
+                          and all(r.get(k) == v for k, v in match.get(m, {}).items())]
                       for m in methods}
     command = "python -m maipp_bench.eval " + " ".join(shlex.quote(a) for a in (argv or
                                                                              sys.argv[1:]))
     board = leaderboard.build(protocol, suite, settings, methods, rows_by_method, command,
                               subset, commit)
+    board["checkpoints"] = checkpoints
     target = Path(args.leaderboards) if subset is None else out_root / "leaderboards"
     paths = leaderboard.write(board, target)
     print(f"wrote {', '.join(str(p) for p in paths)}")

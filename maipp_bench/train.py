@@ -181,6 +181,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
                       for s in (*suite.instance_seeds, *suite.trial_seeds)}
     assert not protocol_seeds & {HELDOUT_SEED_BASE + i for i in range(cfg.eval_episodes)}
 
+    torch.manual_seed(cfg.seed)  # the network's initial weights
     learner = build_learner(cfg.algo, env_cfg.node_encoding_dim, env_cfg.interest_threshold)
     optim = torch.optim.Adam(learner.parameters(), lr=cfg.algo.lr)
     sched = torch.optim.lr_scheduler.StepLR(optim, cfg.algo.lr_decay_every, cfg.algo.lr_decay)
@@ -195,6 +196,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
         wall, curve = state["wall_s"], state["curve"]
         ckpt_path = Path(cfg.resume)
         run_dir = ckpt_path.parent
+    run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "curve.jsonl").write_text("".join(json.dumps(r) + "\n" for r in curve))
 
     env = make_env(env_cfg, cfg.n_envs, learner.core.hidden_dim, cfg.device)

@@ -15,3 +15,30 @@ def _single_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(previous)
+
+
+TINY_TRAIN = ["env=tiny", "n_envs=3", "steps_per_batch=24", "eval_every=0", "progress=false",
+              "algo.epochs=2", "algo.minibatch=32", "algo.net.embed_dim=32",
+              "algo.net.ff_dim=64", "algo.net.heads=2"]
+
+
+def compose_train(*overrides: str):
+    """The training config as ``python -m maipp_bench.train <overrides>`` composes it."""
+    from hydra import compose, initialize
+
+    import maipp_bench.train  # noqa: F401  (registers the schema)
+
+    with initialize(config_path="../maipp_bench/conf", version_base=None):
+        return compose("train", overrides=list(overrides))
+
+
+@pytest.fixture(scope="session")
+def tiny_checkpoint(tmp_path_factory):
+    """A checkpoint of two PPO updates of a small network on the tiny task."""
+    from maipp_bench.train import train
+
+    run = tmp_path_factory.mktemp("tiny_run")
+    previous = torch.get_num_threads()
+    path = train(compose_train(*TINY_TRAIN, "total_updates=2", "checkpoint_every=2"), run)
+    torch.set_num_threads(previous)
+    return path

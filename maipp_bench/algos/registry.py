@@ -42,6 +42,15 @@ class MethodSpec:
     params: dict[str, Any] = field(default_factory=dict)
     description: str = ""
 
+    def checkpoint(self, override: str | None = None) -> Path | None:
+        """The checkpoint file a learned method runs (``override`` or its YAML's), resolved;
+        None for planners. Raises FileNotFoundError with what to do when it is missing."""
+        if not self.learned:
+            return None
+        from maipp_bench.algos.checkpoint import resolve
+
+        return resolve(override or self.params.get("checkpoint", self.name))
+
     def build(self, env: Any, seeds: Any, **extra: Any) -> Any:
         """Instantiate the policy for a batched env and per-episode method seeds."""
         return POLICIES[self.policy](env, seeds, **{**self.params, **extra})

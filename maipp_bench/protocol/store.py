@@ -35,9 +35,11 @@ class ResultStore:
                 continue
         return rows
 
-    def done(self, method: str) -> set[tuple[str, int, int]]:
-        """Keys (setting, instance, trial) already stored for ``method``."""
-        return {(r["setting"], r["instance"], r["trial"]) for r in self.rows(method)}
+    def done(self, method: str, **match: Any) -> set[tuple[str, int, int]]:
+        """Keys (setting, instance, trial) already stored for ``method`` (only rows whose
+        fields equal ``match``, e.g. the checkpoint a learned method's rows came from)."""
+        return {(r["setting"], r["instance"], r["trial"]) for r in self.rows(method)
+                if all(r.get(k) == v for k, v in match.items())}
 
     def append(self, method: str, rows: Iterable[dict[str, Any]]) -> None:
         path = self.path(method)

@@ -1,0 +1,183 @@
+"""Learned methods: decisions and GAE, masks, training, checkpoints, resume, Hydra errors."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from conftest import TINY_TRAIN, compose_train
+from tensordict import TensorDict
+
+from maipp_bench import algos
+from maipp_bench.algos.attention import AttentionConfig
+from maipp_bench.algos.checkpoint import load_core
+from maipp_bench.algos.decisions import decision_batch
+from maipp_bench.algos.modules import AttentionCore, decision_actor
+from maipp_bench.envs import MAIPPConfig
+from maipp_bench.protocol.runner import run_chunk
+
+
+def _fake_batch(deciding, reward, done, value):
+    """A collector-shaped batch [E, T] with only what decision_batch reads."""
+    e, t, m = deciding.shape
+    n, k = 5, 3
+    agents = TensorDict(
+        deciding=deciding, state_value=value.unsqueeze(-1).float(),
+        action=torch.zeros(e, t, m, dtype=torch.int64), action_log_prob=torch.zeros(e, t, m),
+        action_mask=torch.ones(e, t, m, k, dtype=torch.bool),
+        hidden=torch.zeros(e, t, m, 2, 4),
+        observation=TensorDict(
+            node_features=torch.zeros(e, t, m, n, 7), current_node=torch.zeros(e, t, m).long(),
+            budget=torch.zeros(e, t, m, 1), neighbors=torch.zeros(e, t, m, k).long(),
+            batch_size=[e, t, m]),
+        batch_size=[e, t, m])
+    nxt = TensorDict(done=done.unsqueeze(-1),
+                     agents=TensorDict(reward=reward.unsqueeze(-1), batch_size=[e, t, m]),
+                     batch_size=[e, t])
+    return TensorDict(agents=agents, next=nxt, node_encoding=torch.zeros(e, t, n, 2),
+                      state=torch.zeros(e, t, n, 8), batch_size=[e, t])
+
+
+def _gae_reference(rewards, values, next_values, dones, terms, gamma, lmbda):
+    adv, out = 0.0, []
+    for r, v, nv, d, tm in reversed(list(zip(rewards, values, next_values, dones, terms))):
+        delta = r + gamma * nv * (1 - tm) - v
+        adv = delta + gamma * lmbda * (1 - d) * adv
+        out.append(adv)
+    return out[::-1]
+
+
+def test_decision_batch_sums_spans_and_matches_reference_gae():
+    gen = torch.Generator().manual_seed(0)
+    e, t, m = 2, 12, 2
+    deciding = torch.rand(e, t, m, generator=gen) < 0.4
+    deciding[:, 0] = True  # every agent decides at the start
+    done = torch.zeros(e, t, dtype=torch.bool)
+    done[0, 6] = True  # env 0's episode ends at step 6, a new one starts at 7
+    deciding[0, 7] = True
+    reward = torch.randn(e, t, m, generator=gen)
+    value = torch.randn(e, t, m, generator=gen) * deciding
+    bootstrap = torch.randn(e, m, generator=gen)
+    gamma, lmbda = 0.99, 0.9
+    rows = decision_batch(_fake_batch(deciding, reward, done, value), bootstrap, gamma, lmbda)
+    assert rows.shape[0] == int(deciding.sum())
+    got = iter(zip(rows["reward"].squeeze(-1).tolist(), rows["advantage"].squeeze(-1).tolist()))
+    for i in range(e):
+        for a in range(m):
+            ts = deciding[i, :, a].nonzero().squeeze(-1).tolist()
+            spans, nexts, dones, terms, vals = [], [], [], [], []
+            for n_, t0 in enumerate(ts):
+                t1 = ts[n_ + 1] if n_ + 1 < len(ts) else t
+                ends = [s for s in range(t0, t1) if done[i, s]]
+                end = ends[0] if ends else t1 - 1
+                spans.append(float(reward[i, t0:end + 1, a].sum()))
+                over = bool(done[i, end])
+                last = n_ + 1 == len(ts)
+                nexts.append(0.0 if over else (float(bootstrap[i, a]) if last
+                                               else float(value[i, t1, a])))
+                dones.append(over or last)
+                terms.append(over)
+                vals.append(float(value[i, t0, a]))
+            ref = _gae_reference(spans, vals, nexts, dones, terms, gamma, lmbda)
+            for span, adv in zip(spans, ref):
+                r, g = next(got)
+                assert r == pytest.approx(span, abs=1e-5)
+                assert g == pytest.approx(adv, abs=1e-5)
+
+
+def test_sampled_and_greedy_actions_respect_masks():
+    torch.manual_seed(0)
+    core = AttentionCore("ours", AttentionConfig(n_features=6, embed_dim=32, heads=2,
+                                                 ff_dim=64, pe_dim=4), 0.4)
+    actor = decision_actor(core)
+    b, n, k = 256, 20, 6
+    mask = torch.rand(b, k) < 0.3
+    mask[torch.arange(b), torch.randint(0, k, (b,))] = True
+    rows = TensorDict(node_features=torch.rand(b, n, 7), node_encoding=torch.rand(b, n, 4),
+                      current_node=torch.randint(0, n, (b,)), budget=torch.rand(b, 1),
+                      neighbors=torch.randint(0, n, (b, k)), action_mask=mask,
+                      hidden=torch.zeros(b, 2, 32), batch_size=[b])
+    for _ in range(20):
+        out = actor(rows.clone())
+        assert mask.gather(1, out["action"].unsqueeze(-1)).all()
+        assert torch.isfinite(out["action_log_prob"]).all()
+    assert mask.gather(1, out["logits"].argmax(-1, keepdim=True)).all()
+
+
+def test_training_runs_with_finite_losses_and_checkpoint_round_trip(tiny_checkpoint):
+    state = torch.load(tiny_checkpoint, weights_only=False)
+    assert state["update"] == 2 and len(state["curve"]) == 2
+    for row in state["curve"]:
+        for key in ("loss_objective", "loss_critic", "reward_per_decision"):
+            assert np.isfinite(row[key]), key
+    core, payload = load_core(tiny_checkpoint)
+    for name, tensor in core.state_dict().items():
+        assert torch.equal(tensor, payload["core"][name])
+    # Training moved the weights away from their seeded initialisation.
+    from maipp_bench.algos.ppo import build_learner
+
+    torch.manual_seed(payload["config"]["seed"])
+    fresh = build_learner(compose_train(*TINY_TRAIN).algo, payload["env"]["node_encoding_dim"],
+                          payload["env"]["interest_threshold"]).core.state_dict()
+    moved = [k for k, v in fresh.items() if not torch.equal(v, payload["core"][k])]
+    assert len(moved) > len(fresh) // 2
+
+
+def test_killed_and_resumed_training_continues_the_same_curve(tmp_path):
+    from maipp_bench.train import train
+
+    full = train(compose_train(*TINY_TRAIN, "total_updates=3", "checkpoint_every=1"),
+                 tmp_path / "full")
+    part = train(compose_train(*TINY_TRAIN, "total_updates=2", "checkpoint_every=1"),
+                 tmp_path / "part")
+    resumed = train(compose_train(*TINY_TRAIN, "total_updates=3", "checkpoint_every=1",
+                                  f"resume={part}"), tmp_path / "elsewhere")
+    assert resumed == part  # the run continues in its own folder
+    a, b = torch.load(full, weights_only=False), torch.load(resumed, weights_only=False)
+    for name, tensor in a["core"].items():
+        assert torch.equal(tensor, b["core"][name]), name
+    strip = lambda curve: [{k: v for k, v in r.items() if k != "wall_s"} for r in curve]  # noqa: E731
+    assert strip(a["curve"]) == strip(b["curve"])
+    lines = (part.parent / "curve.jsonl").read_text().splitlines()
+    assert len(lines) == 3
+
+
+@pytest.mark.parametrize("mode", ["greedy", "ti"])
+def test_learned_policy_plays_valid_reproducible_episodes(tiny_checkpoint, mode):
+    cfg = MAIPPConfig(n_agents=2, budget=1.0, n_nodes=40, k_neighbors=8)
+    spec = algos.MethodSpec(name=f"tiny_{mode}", policy="attention", models_risk=True,
+                            learned=True, params={"mode": mode, "rollouts": 3, "depth": 2})
+    rows = run_chunk(spec, cfg, [11, 12], trial_seed=5, checkpoint=str(tiny_checkpoint))
+    again = run_chunk(spec, cfg, [11, 12], trial_seed=5, checkpoint=str(tiny_checkpoint))
+    strip = lambda rs: [{k: v for k, v in r.items() if k != "planning_s"} for r in rs]  # noqa: E731
+    assert strip(rows) == strip(again)
+    for r in rows:
+        assert r["distance"] <= cfg.team_budget + 1e-9 and 0 < r["trace"] <= 900
+
+
+def test_missing_checkpoint_and_bad_mode_are_clear_errors(tiny_checkpoint):
+    from maipp_bench.envs import MAIPPEnv
+
+    env = MAIPPEnv(MAIPPConfig(n_nodes=30, k_neighbors=6), batch_size=[1])
+    seeds = torch.zeros(1, dtype=torch.int64)
+    with pytest.raises(FileNotFoundError, match="maipp_bench.train"):
+        algos.POLICIES["attention"](env, seeds, checkpoint="/nonexistent/x.pt")
+    with pytest.raises(ValueError, match="mode"):
+        algos.POLICIES["attention"](env, seeds, checkpoint=str(tiny_checkpoint), mode="beam")
+
+
+@pytest.mark.parametrize("override, message", [
+    ("algo=nonexistent", "Could not find 'algo/nonexistent'"),
+    ("n_envs=many", "n_envs"),
+    ("algo.lr=fast", "algo.lr"),
+    ("env.budget=-1", "MAIPPConfig.budget"),
+])
+def test_bad_overrides_get_clear_errors(override, message, tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "maipp_bench.train", override, "env=tiny", "total_updates=1",
+         f"hydra.run.dir={tmp_path}"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode != 0
+    assert message in proc.stderr
