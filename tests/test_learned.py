@@ -181,3 +181,13 @@ def test_bad_overrides_get_clear_errors(override, message, tmp_path):
          f"hydra.run.dir={tmp_path}"], capture_output=True, text=True, timeout=300)
     assert proc.returncode != 0
     assert message in proc.stderr
+
+
+def test_training_curve_plot(tiny_checkpoint, tmp_path):
+    from maipp_bench.curves import main, read_curve
+
+    rows = read_curve(tiny_checkpoint.parent)
+    assert [r["update"] for r in rows] == [1, 2]
+    out = tmp_path / "c.png"
+    main([f"tiny={tiny_checkpoint.parent}", "--out", str(out)])
+    assert out.stat().st_size > 5000

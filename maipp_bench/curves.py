@@ -1,0 +1,67 @@
+"""Training curves: ``python -m maipp_bench.curves RUN_OR_CARD... --out curves.png``.
+
+Reads a run folder's ``curve.jsonl`` or a shipped checkpoint's JSON card and plots, against
+env frames, the final Tr(P) of the training episodes, the held-out greedy evaluation's
+Tr(P) and the mean reward per decision.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+
+def read_curve(source: str | Path) -> list[dict[str, Any]]:
+    """The curve rows of a run folder (``curve.jsonl``) or a checkpoint card (``.json``)."""
+    path = Path(source)
+    if path.is_dir():
+        path = path / "curve.jsonl"
+    if path.suffix == ".jsonl":
+        return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    return json.loads(path.read_text())["curve"]
+
+
+def plot_curves(sources: dict[str, list[dict[str, Any]]], out: str | Path) -> Path:
+    """One figure, three panels, one line per named curve; written to ``out`` (PNG)."""
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6), constrained_layout=True)
+    panels = [("trace_final", "Tr(P_f), training episodes"),
+              ("eval/trace", "Tr(P_f), held-out greedy eval"),
+              ("reward_per_decision", "reward per decision")]
+    for ax, (key, title) in zip(axes, panels):
+        for name, rows in sources.items():
+            pts = [(r["frames"], r[key]) for r in rows if key in r and r[key] == r[key]]
+            if pts:
+                ax.plot(*zip(*pts), marker="." if len(pts) < 40 else None, label=name)
+        ax.set_title(title)
+        ax.set_xlabel("env frames")
+        ax.grid(alpha=0.3)
+    axes[0].legend()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(prog="python -m maipp_bench.curves", description=__doc__)
+    p.add_argument("sources", nargs="+", help="run folders or checkpoint cards (NAME=PATH "
+                   "to name a line)")
+    p.add_argument("--out", required=True)
+    args = p.parse_args(argv)
+    curves = {}
+    for src in args.sources:
+        name, sep, path = src.partition("=")
+        curves[name if sep else Path(src).stem] = read_curve(path if sep else src)
+    print(f"wrote {plot_curves(curves, args.out)}")
+
+
+if __name__ == "__main__":
+    main()
