@@ -191,3 +191,24 @@ def test_training_curve_plot(tiny_checkpoint, tmp_path):
     out = tmp_path / "c.png"
     main([f"tiny={tiny_checkpoint.parent}", "--out", str(out)])
     assert out.stat().st_size > 5000
+
+
+def test_algo_configs_compose_as_documented():
+    catnipp = compose_train("algo=catnipp")
+    assert catnipp.algo.feature_set == "catnipp" and catnipp.env.prune_risky_nodes
+    assert not compose_train("algo=catnipp", "env=tiny").env.prune_risky_nodes  # CLI wins
+    mappo = compose_train("algo=mappo")
+    assert (mappo.algo.critic, mappo.algo.loss) == ("state", "mappo")
+    ours = compose_train()
+    assert ours.algo.name == "ours" and ours.env.node_encoding_dim == 32
+    assert (ours.algo.lr, ours.algo.minibatch, ours.algo.epochs) == (1e-4, 256, 8)
+
+
+@pytest.mark.parametrize("algo", ["catnipp", "mappo"])
+def test_other_algos_train(algo, tmp_path):
+    from maipp_bench.train import train
+
+    path = train(compose_train(*TINY_TRAIN, f"algo={algo}", "env=tiny", "total_updates=1"),
+                 tmp_path)
+    row = torch.load(path, weights_only=False)["curve"][0]
+    assert np.isfinite(row["loss_objective"]) and np.isfinite(row["loss_critic"])
