@@ -212,3 +212,16 @@ def test_other_algos_train(algo, tmp_path):
                  tmp_path)
     row = torch.load(path, weights_only=False)["curve"][0]
     assert np.isfinite(row["loss_objective"]) and np.isfinite(row["loss_critic"])
+
+
+@pytest.mark.parametrize("backend, pattern", [
+    ("csv", "logs/ours/scalars/loss_critic.csv"),
+    ("tensorboard", "logs/ours/events.out.tfevents.*"),
+    ("wandb", "wandb/offline-run-*/run-*.wandb"),  # offline: no network, ever
+])
+def test_loggers_write_offline(backend, pattern, tmp_path, monkeypatch):
+    from maipp_bench.train import train
+
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    train(compose_train(*TINY_TRAIN, f"logger={backend}", "total_updates=1"), tmp_path)
+    assert list(tmp_path.glob(pattern)), sorted(str(p) for p in tmp_path.rglob("*"))
