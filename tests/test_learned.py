@@ -225,3 +225,32 @@ def test_loggers_write_offline(backend, pattern, tmp_path, monkeypatch):
     monkeypatch.setenv("WANDB_SILENT", "true")
     train(compose_train(*TINY_TRAIN, f"logger={backend}", "total_updates=1"), tmp_path)
     assert list(tmp_path.glob(pattern)), sorted(str(p) for p in tmp_path.rglob("*"))
+
+
+def test_eval_records_checkpoints_and_never_mixes_their_rows(tiny_checkpoint, tmp_path,
+                                                              monkeypatch):
+    import json
+
+    from maipp_bench import eval as eval_cli
+    from maipp_bench.algos import checkpoint as ckpt
+
+    other = tmp_path / "other.pt"
+    state = torch.load(tiny_checkpoint, weights_only=False)
+    next(iter(state["core"].values())).add_(1e-3)  # another network, another hash
+    torch.save(state, other)
+    args = ["--suite", "smoke", "--methods", "ours_greedy", "--episodes", "2", "--out",
+            str(tmp_path / "res"), "--no-progress", "--workers", "1"]
+    first = eval_cli.main([*args, "--checkpoint", f"ours_greedy={tiny_checkpoint}"])
+    second = eval_cli.main([*args, "--checkpoint", f"ours_greedy={other}"])
+    sha = [b["checkpoints"]["ours_greedy"]["sha256"] for b in (first, second)]
+    assert sha[0] != sha[1]
+    stored = [json.loads(line) for line in
+              (tmp_path / "res/subset-2/smoke/ours_greedy.jsonl").read_text().splitlines()]
+    assert sorted({r["checkpoint_sha256"] for r in stored}) == sorted(sha)
+    assert len(stored) == 2 * 2 * 2  # 2 settings x 2 episodes, once per checkpoint
+    # Without a shipped file, asking for a learned method says how to get one.
+    monkeypatch.setattr(ckpt, "SHIPPED_DIR", tmp_path / "empty")
+    with pytest.raises(SystemExit, match="maipp_bench.train"):
+        eval_cli.main(args)
+    with pytest.raises(SystemExit, match="not a learned method"):
+        eval_cli.main([*args[:2], "--methods", "greedy", "--checkpoint", f"greedy={other}"])
