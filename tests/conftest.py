@@ -24,11 +24,11 @@ TINY_TRAIN = ["env=tiny", "n_envs=3", "steps_per_batch=24", "eval_every=0", "pro
 
 def compose_train(*overrides: str):
     """The training config as ``python -m maipp_bench.train <overrides>`` composes it."""
-    from hydra import compose, initialize
+    from hydra import compose, initialize_config_module
 
     import maipp_bench.train  # noqa: F401  (registers the schema)
 
-    with initialize(config_path="../maipp_bench/conf", version_base=None):
+    with initialize_config_module("maipp_bench.conf", version_base=None):
         return compose("train", overrides=list(overrides))
 
 

@@ -1,0 +1,106 @@
+"""Training throughput of ``python -m maipp_bench.train``: where an update's time goes.
+
+Times, for the configured algorithm and env, the three phases of an update, over a few
+updates after one warm-up update:
+
+* collection (TorchRL ``Collector`` + ``TeamPolicy``): env frames/s and decisions/s;
+* decisions + GAE (:func:`maipp_bench.algos.decisions.decision_batch`);
+* learning (``epochs`` passes of minibatches through the loss, backward, Adam): decision
+  rows per second through forward + backward.
+
+Usage (Hydra overrides as for training):
+    python benchmarks/train_throughput.py algo=ours --updates 3
+    python benchmarks/train_throughput.py algo=mappo n_envs=16 device=cuda --out t.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+
+import torch
+from hydra import compose, initialize_config_module
+from omegaconf import OmegaConf
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.data.replay_buffers import SamplerWithoutReplacement
+
+import maipp_bench.train as train_mod
+from maipp_bench.algos.decisions import decision_batch
+from maipp_bench.algos.modules import TeamPolicy
+from maipp_bench.algos.ppo import build_learner
+from maipp_bench.envs.config import MAIPPConfig
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("overrides", nargs="*")
+    p.add_argument("--updates", type=int, default=3)
+    p.add_argument("--out")
+    args = p.parse_args()
+    with initialize_config_module("maipp_bench.conf", version_base=None):
+        cfg = compose("train", overrides=args.overrides)
+    torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    env_cfg = MAIPPConfig.from_dict(OmegaConf.to_container(cfg.env))
+    learner = build_learner(cfg.algo, env_cfg.node_encoding_dim, env_cfg.interest_threshold)
+    optim = torch.optim.Adam(learner.parameters(), lr=cfg.algo.lr)
+    env = train_mod.make_env(env_cfg, cfg.n_envs, learner.core.hidden_dim, cfg.device)
+    collector = Collector(env, TeamPolicy(learner.actor, learner.critic,
+                                          learner.core.hidden_dim),
+                          frames_per_batch=cfg.n_envs * cfg.steps_per_batch, total_frames=-1,
+                          auto_register_policy_transforms=False)
+    buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.n_envs * cfg.steps_per_batch
+                                                    * env_cfg.n_agents),
+                          sampler=SamplerWithoutReplacement(), batch_size=cfg.algo.minibatch)
+    times = {"collect": 0.0, "decisions": 0.0, "learn": 0.0}
+    frames = decisions = passes = 0
+    for update in range(args.updates + 1):
+        t0 = time.perf_counter()
+        batch = collector.next()
+        t1 = time.perf_counter()
+        rows = decision_batch(batch, train_mod._bootstrap(learner, batch[:, -1].get("next")),
+                              cfg.algo.gamma, cfg.algo.lmbda)
+        t2 = time.perf_counter()
+        buffer.empty()
+        buffer.extend(rows)
+        for _ in range(cfg.algo.epochs):
+            for mb in buffer:
+                out = learner.loss(mb)
+                loss = sum(v for k, v in out.items() if k.startswith("loss_"))
+                optim.zero_grad()
+                loss.backward()
+                optim.step()
+                passes += mb.numel() if update else 0
+        t3 = time.perf_counter()
+        if update:  # the first update warms up
+            times["collect"] += t1 - t0
+            times["decisions"] += t2 - t1
+            times["learn"] += t3 - t2
+            frames += batch.numel()
+            decisions += rows.numel()
+    collector.shutdown()
+    total = sum(times.values())
+    result = {
+        "overrides": args.overrides, "updates": args.updates,
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores, "
+                   f"{torch.get_num_threads()} torch thread(s), device {cfg.device}",
+        "load_avg": os.getloadavg(),
+        "seconds_per_update": total / args.updates,
+        "share": {k: v / total for k, v in times.items()},
+        "frames_per_s": frames / total,
+        "decisions_per_s": decisions / total,
+        "collect_frames_per_s": frames / times["collect"],
+        "learn_rows_per_s": passes / times["learn"],
+    }
+    print(json.dumps(result, indent=1))
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(result, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()

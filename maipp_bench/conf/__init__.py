@@ -1,0 +1,1 @@
+"""Hydra configs of ``python -m maipp_bench.train`` and method YAMLs of the protocol."""
