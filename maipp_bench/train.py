@@ -161,6 +161,19 @@ def evaluate(learner: Learner, env_cfg: MAIPPConfig, cfg: Any) -> dict[str, floa
     return {f"eval/{k}": sum(r[k] for r in rows) / n for k in ("trace", "rmse", "traps")}
 
 
+def _command() -> str:
+    return "python -m maipp_bench.train " + " ".join(sys.argv[1:])
+
+
+def _hydra_command(run_dir: Path) -> list[str]:
+    """The command of a run from Hydra's record of its overrides (checkpoints written
+    before commands were stored in them)."""
+    path = run_dir / ".hydra" / "overrides.yaml"
+    if not path.exists():
+        return []
+    return ["python -m maipp_bench.train " + " ".join(OmegaConf.load(path))]
+
+
 def _commit() -> str:
     try:
         return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
@@ -187,6 +200,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
     sched = torch.optim.lr_scheduler.StepLR(optim, cfg.algo.lr_decay_every, cfg.algo.lr_decay)
     ckpt_path = run_dir / "checkpoint.pt"
     start, frames, episodes, wall, curve = 0, 0, 0, 0.0, []
+    commands = [_command()]  # every invocation that contributed, in order
     if cfg.resume:
         state = torch.load(cfg.resume, map_location=cfg.device, weights_only=False)
         learner.loss.load_state_dict(state["loss"])
@@ -194,6 +208,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
         sched.load_state_dict(state["scheduler"])
         start, frames, episodes = state["update"], state["frames"], state["episodes"]
         wall, curve = state["wall_s"], state["curve"]
+        commands = state.get("commands", _hydra_command(Path(cfg.resume).parent)) + commands
         ckpt_path = Path(cfg.resume)
         run_dir = ckpt_path.parent
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -217,6 +232,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
             "loss": learner.loss.state_dict(), "optimizer": optim.state_dict(),
             "scheduler": sched.state_dict(), "algo": OmegaConf.to_container(cfg.algo),
             "env": env_cfg.to_dict(), "config": OmegaConf.to_container(cfg),
+            "commands": commands,
         }, ckpt_path)
 
     for update in range(start, cfg.total_updates):
@@ -291,7 +307,8 @@ def write_card(cfg: Any, ckpt_path: Path, out: Path) -> None:
     state = torch.load(out, map_location="cpu", weights_only=False)
     card = {
         "algo": cfg.algo.name,
-        "command": "python -m maipp_bench.train " + " ".join(sys.argv[1:]),
+        "command": state["commands"][0],
+        "resumed_with": state["commands"][1:],
         "seed": cfg.seed,
         "commit": _commit(),
         "updates": state["update"],

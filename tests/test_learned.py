@@ -254,3 +254,22 @@ def test_eval_records_checkpoints_and_never_mixes_their_rows(tiny_checkpoint, tm
         eval_cli.main(args)
     with pytest.raises(SystemExit, match="not a learned method"):
         eval_cli.main([*args[:2], "--methods", "greedy", "--checkpoint", f"greedy={other}"])
+
+
+def test_export_writes_policy_and_card(tmp_path):
+    import json
+
+    from maipp_bench.train import train
+
+    out = tmp_path / "shipped" / "tiny.pt"
+    path = train(compose_train(*TINY_TRAIN, "total_updates=1", f"export={out}"), tmp_path)
+    card = json.loads(out.with_suffix(".json").read_text())
+    for key in ("command", "seed", "commit", "wall_s", "machine", "curve", "updates", "frames"):
+        assert key in card, key
+    assert card["command"].startswith("python -m maipp_bench.train")
+    assert len(card["curve"]) == 1 and card["updates"] == 1
+    core, _ = load_core(out)
+    full, _ = load_core(path)
+    for name, tensor in core.state_dict().items():
+        assert torch.equal(tensor, full.state_dict()[name])
+    assert out.stat().st_size < path.stat().st_size  # slim: no optimiser state

@@ -69,5 +69,6 @@ def load_core(checkpoint: str | Path, device: str | torch.device = "cpu"
 def export_policy(checkpoint: str | Path, out: str | Path) -> None:
     """Write the slim policy file (weights + configs + curve) of a training checkpoint."""
     payload = torch.load(checkpoint, map_location="cpu", weights_only=False)
-    keep = ("format", "algo", "env", "core", "update", "frames", "wall_s", "config", "curve")
+    keep = ("format", "algo", "env", "core", "update", "frames", "wall_s", "config", "curve",
+            "commands")
     atomic_save({k: payload[k] for k in keep}, out)
