@@ -88,6 +88,7 @@ class TrainConfig:
     eval_budget: float = 3.0
     resume: str | None = None
     export: str | None = None  # at the end: write the policy file + JSON card here
+    export_from: str = "best"  # best (lowest held-out eval Tr(P); else last) | last
     progress: bool = True
 
 
@@ -200,6 +201,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
     sched = torch.optim.lr_scheduler.StepLR(optim, cfg.algo.lr_decay_every, cfg.algo.lr_decay)
     ckpt_path = run_dir / "checkpoint.pt"
     start, frames, episodes, wall, curve = 0, 0, 0, 0.0, []
+    best = math.inf  # lowest held-out eval Tr(P) so far (model selection never sees the protocol)
     commands = [_command()]  # every invocation that contributed, in order
     if cfg.resume:
         state = torch.load(cfg.resume, map_location=cfg.device, weights_only=False)
@@ -208,6 +210,8 @@ def train(cfg: Any, run_dir: Path) -> Path:
         sched.load_state_dict(state["scheduler"])
         start, frames, episodes = state["update"], state["frames"], state["episodes"]
         wall, curve = state["wall_s"], state["curve"]
+        if (Path(cfg.resume).parent / "best.pt").exists():  # else: best of what we hold
+            best = min([r["eval/trace"] for r in curve if "eval/trace" in r], default=math.inf)
         commands = state.get("commands", _hydra_command(Path(cfg.resume).parent)) + commands
         ckpt_path = Path(cfg.resume)
         run_dir = ckpt_path.parent
@@ -225,7 +229,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
     bar = tqdm(total=cfg.total_updates, initial=start, desc=f"train {cfg.algo.name}",
                unit="upd", disable=not cfg.progress, dynamic_ncols=True)
 
-    def save(update: int) -> None:
+    def save(update: int, path: Path = ckpt_path) -> None:
         atomic_save({
             "format": FORMAT, "update": update, "frames": frames, "episodes": episodes,
             "wall_s": wall, "curve": curve, "core": learner.core.state_dict(),
@@ -233,7 +237,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
             "scheduler": sched.state_dict(), "algo": OmegaConf.to_container(cfg.algo),
             "env": env_cfg.to_dict(), "config": OmegaConf.to_container(cfg),
             "commands": commands,
-        }, ckpt_path)
+        }, path)
 
     for update in range(start, cfg.total_updates):
         t0 = time.perf_counter()
@@ -279,6 +283,9 @@ def train(cfg: Any, run_dir: Path) -> Path:
             learner.core.eval()
             row.update(evaluate(learner, env_cfg, cfg))
         curve.append(row)
+        if row.get("eval/trace", math.inf) < best:
+            best = row["eval/trace"]
+            save(update + 1, run_dir / "best.pt")
         with open(run_dir / "curve.jsonl", "a") as f:
             f.write(json.dumps(row) + "\n")
         for k, v in row.items():
@@ -297,14 +304,20 @@ def train(cfg: Any, run_dir: Path) -> Path:
     bar.close()
     collector.shutdown()
     if cfg.export:
-        write_card(cfg, ckpt_path, Path(cfg.export))
+        if cfg.export_from not in ("best", "last"):
+            raise ValueError(f"export_from={cfg.export_from!r}; valid: ['best', 'last']")
+        best_path = ckpt_path.parent / "best.pt"
+        source = best_path if cfg.export_from == "best" and best_path.exists() else ckpt_path
+        write_card(cfg, source, ckpt_path, Path(cfg.export))
     return ckpt_path
 
 
-def write_card(cfg: Any, ckpt_path: Path, out: Path) -> None:
-    """The shipped policy file and its JSON card (command, seed, commit, time, machine)."""
-    export_policy(ckpt_path, out)
-    state = torch.load(out, map_location="cpu", weights_only=False)
+def write_card(cfg: Any, source: Path, last: Path, out: Path) -> None:
+    """The shipped policy file (weights of ``source``: the best or the last checkpoint) and
+    its JSON card: commands, seed, commit, wall time, machine and the run's whole curve."""
+    export_policy(source, out)
+    chosen = torch.load(out, map_location="cpu", weights_only=False)
+    state = torch.load(last, map_location="cpu", weights_only=False)
     card = {
         "algo": cfg.algo.name,
         "command": state["commands"][0],
@@ -312,6 +325,9 @@ def write_card(cfg: Any, ckpt_path: Path, out: Path) -> None:
         "seed": cfg.seed,
         "commit": _commit(),
         "updates": state["update"],
+        "selected_update": chosen["update"],
+        "selected_by": "lowest held-out greedy Tr(P) (eval/trace)"
+        if chosen["update"] != state["update"] or source != last else "last update",
         "frames": state["frames"],
         "wall_s": state["wall_s"],
         "machine": f"{platform.machine()} {platform.processor() or ''}".strip()

@@ -273,3 +273,18 @@ def test_export_writes_policy_and_card(tmp_path):
     for name, tensor in core.state_dict().items():
         assert torch.equal(tensor, full.state_dict()[name])
     assert out.stat().st_size < path.stat().st_size  # slim: no optimiser state
+
+
+def test_best_held_out_checkpoint_is_exported(tmp_path):
+    import json
+
+    from maipp_bench.train import train
+
+    out = tmp_path / "shipped.pt"
+    train(compose_train(*TINY_TRAIN, "total_updates=3", "eval_every=1", "eval_episodes=2",
+                        f"export={out}"), tmp_path / "run")
+    card = json.loads(out.with_suffix(".json").read_text())
+    evals = [r["eval/trace"] for r in card["curve"]]
+    assert len(evals) == 3 and card["updates"] == 3
+    assert card["selected_update"] == 1 + evals.index(min(evals))
+    assert torch.load(out, weights_only=False)["update"] == card["selected_update"]
