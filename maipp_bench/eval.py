@@ -117,7 +117,12 @@ def main(argv: list[str] | None = None) -> dict:
             methods.remove(name)
             continue
         if path is not None:
-            checkpoints[name] = {"path": str(path), "sha256": file_sha256(path)}
+            shown = path.resolve()
+            try:  # shipped files by their place in the repo, not this machine's path
+                shown = shown.relative_to(Path.cwd().resolve())
+            except ValueError:
+                pass
+            checkpoints[name] = {"path": str(shown), "sha256": file_sha256(path)}
             policy_kwargs.setdefault(name, {})["checkpoint"] = str(path)
     match = {m: {"checkpoint_sha256": c["sha256"]} for m, c in checkpoints.items()}
     settings = list(suite.settings)

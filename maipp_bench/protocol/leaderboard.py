@@ -155,6 +155,11 @@ def markdown(board: dict[str, Any]) -> str:
     ]
     if board["subset"]:
         lines += ["**Quick subset, not the full protocol: do not compare with full rows.**", ""]
+    for method, ckpt in board.get("checkpoints", {}).items():
+        lines += [f"Learned method `{method}`: checkpoint `{ckpt['path']}` (sha256 "
+                  f"`{ckpt['sha256'][:12]}`)."]
+    if board.get("checkpoints"):
+        lines += [""]
     lines += [
         "Tr(P_f): final Tr(P) over the high-interest region (lower is better), mean ± std "
         "[95% CI half-width]; paper: the paper's mean / std for the same method and setting.",
