@@ -24,13 +24,8 @@ import time
 import torch
 from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
-from torchrl.collectors import Collector
-from torchrl.data import LazyTensorStorage, ReplayBuffer
-from torchrl.data.replay_buffers import SamplerWithoutReplacement
 
 import maipp_bench.train as train_mod
-from maipp_bench.algos.decisions import decision_batch
-from maipp_bench.algos.modules import TeamPolicy
 from maipp_bench.algos.ppo import build_learner
 from maipp_bench.envs.config import MAIPPConfig
 
@@ -48,33 +43,17 @@ def main() -> None:
     env_cfg = MAIPPConfig.from_dict(OmegaConf.to_container(cfg.env))
     learner = build_learner(cfg.algo, env_cfg.node_encoding_dim, env_cfg.interest_threshold)
     optim = torch.optim.Adam(learner.parameters(), lr=cfg.algo.lr)
-    env = train_mod.make_env(env_cfg, cfg.n_envs, learner.core.hidden_dim, cfg.device)
-    collector = Collector(env, TeamPolicy(learner.actor, learner.critic,
-                                          learner.core.hidden_dim),
-                          frames_per_batch=cfg.n_envs * cfg.steps_per_batch, total_frames=-1,
-                          auto_register_policy_transforms=False)
-    buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.n_envs * cfg.steps_per_batch
-                                                    * env_cfg.n_agents),
-                          sampler=SamplerWithoutReplacement(), batch_size=cfg.algo.minibatch)
+    _, collector, buffer = train_mod.make_collection(cfg, env_cfg, learner)
     times = {"collect": 0.0, "decisions": 0.0, "learn": 0.0}
     frames = decisions = passes = 0
     for update in range(args.updates + 1):
         t0 = time.perf_counter()
         batch = collector.next()
         t1 = time.perf_counter()
-        rows = decision_batch(batch, train_mod._bootstrap(learner, batch[:, -1].get("next")),
-                              cfg.algo.gamma, cfg.algo.lmbda)
+        rows = train_mod.collected_decisions(learner, batch, cfg.algo)
         t2 = time.perf_counter()
-        buffer.empty()
-        buffer.extend(rows)
-        for _ in range(cfg.algo.epochs):
-            for mb in buffer:
-                out = learner.loss(mb)
-                loss = sum(v for k, v in out.items() if k.startswith("loss_"))
-                optim.zero_grad()
-                loss.backward()
-                optim.step()
-                passes += mb.numel() if update else 0
+        train_mod.learn(learner, optim, buffer, rows, cfg.algo)
+        passes += cfg.algo.epochs * rows.numel() if update else 0
         t3 = time.perf_counter()
         if update:  # the first update warms up
             times["collect"] += t1 - t0

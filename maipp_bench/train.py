@@ -151,6 +151,47 @@ def _bootstrap(learner: Learner, last: TensorDict) -> torch.Tensor:
     return value.view(e, m)
 
 
+def make_collection(cfg: Any, env_cfg: MAIPPConfig, learner: Learner
+                    ) -> tuple[TransformedEnv, Collector, ReplayBuffer]:
+    """The training env, its TorchRL collector (policy: the learner's TeamPolicy) and the
+    replay buffer an update's decisions are sampled from."""
+    env = make_env(env_cfg, cfg.n_envs, learner.core.hidden_dim, cfg.device)
+    policy = TeamPolicy(learner.actor, learner.critic, learner.core.hidden_dim)
+    collector = Collector(env, policy, frames_per_batch=cfg.n_envs * cfg.steps_per_batch,
+                          total_frames=-1, auto_register_policy_transforms=False)
+    buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.n_envs * cfg.steps_per_batch
+                                                    * env_cfg.n_agents),
+                          sampler=SamplerWithoutReplacement(), batch_size=cfg.algo.minibatch)
+    return env, collector, buffer
+
+
+def collected_decisions(learner: Learner, batch: TensorDict, algo: Any) -> TensorDict:
+    """A collected batch's decision rows with GAE advantages and value targets."""
+    return decision_batch(batch, _bootstrap(learner, batch[:, -1].get("next")),
+                          algo.gamma, algo.lmbda)
+
+
+def learn(learner: Learner, optim: torch.optim.Optimizer, buffer: ReplayBuffer,
+          rows: TensorDict, algo: Any) -> dict[str, list[float]]:
+    """``epochs`` passes of minibatches of ``rows`` through the loss; the loss terms and
+    diagnostics of every minibatch."""
+    learner.core.train()
+    buffer.empty()
+    buffer.extend(rows)
+    stats: dict[str, list[float]] = {}
+    for _ in range(algo.epochs):
+        for minibatch in buffer:
+            out = learner.loss(minibatch)
+            total = sum(v for k, v in out.items() if k.startswith("loss_"))
+            optim.zero_grad()
+            total.backward()
+            torch.nn.utils.clip_grad_norm_(learner.parameters(), algo.grad_clip)
+            optim.step()
+            for k, v in out.items():
+                stats.setdefault(k, []).append(float(v.detach().mean()))
+    return stats
+
+
 def evaluate(learner: Learner, env_cfg: MAIPPConfig, cfg: Any) -> dict[str, float]:
     """Greedy episodes on held-out seeds at ``eval_budget`` (never the protocol's seeds)."""
     seeds = [HELDOUT_SEED_BASE + i for i in range(cfg.eval_episodes)]
@@ -218,13 +259,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "curve.jsonl").write_text("".join(json.dumps(r) + "\n" for r in curve))
 
-    env = make_env(env_cfg, cfg.n_envs, learner.core.hidden_dim, cfg.device)
-    policy = TeamPolicy(learner.actor, learner.critic, learner.core.hidden_dim)
-    collector = Collector(env, policy, frames_per_batch=cfg.n_envs * cfg.steps_per_batch,
-                          total_frames=-1, auto_register_policy_transforms=False)
-    buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.n_envs * cfg.steps_per_batch
-                                                    * env_cfg.n_agents),
-                          sampler=SamplerWithoutReplacement(), batch_size=cfg.algo.minibatch)
+    env, collector, buffer = make_collection(cfg, env_cfg, learner)
     logger = _logger(cfg, run_dir)
     bar = tqdm(total=cfg.total_updates, initial=start, desc=f"train {cfg.algo.name}",
                unit="upd", disable=not cfg.progress, dynamic_ncols=True)
@@ -248,26 +283,12 @@ def train(cfg: Any, run_dir: Path) -> Path:
         collector.reset()
         learner.core.eval()
         batch = collector.next()
-        rows = decision_batch(batch, _bootstrap(learner, batch[:, -1].get("next")),
-                              cfg.algo.gamma, cfg.algo.lmbda)
+        rows = collected_decisions(learner, batch, cfg.algo)
         done = batch.get(("next", "done")).squeeze(-1)
         frames += batch.numel()
         episodes += int(done.sum())
         # --- learn: epochs x minibatches of decisions
-        learner.core.train()
-        buffer.empty()
-        buffer.extend(rows)
-        stats: dict[str, list[float]] = {}
-        for _ in range(cfg.algo.epochs):
-            for minibatch in buffer:
-                out = learner.loss(minibatch)
-                total = sum(v for k, v in out.items() if k.startswith("loss_"))
-                optim.zero_grad()
-                total.backward()
-                torch.nn.utils.clip_grad_norm_(learner.parameters(), cfg.algo.grad_clip)
-                optim.step()
-                for k, v in out.items():
-                    stats.setdefault(k, []).append(float(v.detach().mean()))
+        stats = learn(learner, optim, buffer, rows, cfg.algo)
         sched.step()
         wall += time.perf_counter() - t0
         # --- log

@@ -91,12 +91,14 @@ def decision_batch(batch: TensorDictBase, bootstrap: torch.Tensor, gamma: float,
     )
     GAE(gamma=gamma, lmbda=lmbda, value_network=None)(gae_td)
 
-    steps = batch.exclude("next")[e_idx, t_idx]
-    row = torch.arange(e_idx.numel(), device=e_idx.device)
-    rows = decision_rows(steps, row, a_idx, steps.get(HIDDEN_KEY))
+    # Gather each decision's own agent straight from the [E * T] steps (no per-step copy of
+    # every agent's features).
+    steps = batch.exclude("next").reshape(-1)
+    step = e_idx * t + t_idx
+    rows = decision_rows(steps, step, a_idx, steps.get(HIDDEN_KEY))
     rows.update({
-        "action": steps.get(("agents", "action"))[row, a_idx],
-        LOG_PROB_KEY: steps.get(("agents", LOG_PROB_KEY))[row, a_idx],
+        "action": steps.get(("agents", "action"))[step, a_idx],
+        LOG_PROB_KEY: steps.get(("agents", LOG_PROB_KEY))[step, a_idx],
         "state_value": gae_td.get("state_value")[seq, rank],
         "reward": gae_td.get(("next", "reward"))[seq, rank],
         "advantage": gae_td.get("advantage")[seq, rank],
