@@ -8,8 +8,12 @@ updates after one warm-up update:
 * learning (``epochs`` passes of minibatches through the loss, backward, Adam): decision
   rows per second through forward + backward.
 
+``--card CARD.json`` instead reports the throughput of a finished run from its checkpoint
+card (the wall time of every update is in its curve).
+
 Usage (Hydra overrides as for training):
     python benchmarks/train_throughput.py algo=ours --updates 3
+    python benchmarks/train_throughput.py --card maipp_bench/checkpoints/ours.json
     python benchmarks/train_throughput.py algo=mappo n_envs=16 device=cuda --out t.json
 """
 
@@ -35,7 +39,17 @@ def main() -> None:
     p.add_argument("overrides", nargs="*")
     p.add_argument("--updates", type=int, default=3)
     p.add_argument("--out")
+    p.add_argument("--card", help="report a finished run's throughput from its card")
     args = p.parse_args()
+    if args.card:
+        curve = json.load(open(args.card))["curve"]
+        wall = curve[-1]["wall_s"]
+        print(json.dumps({"card": args.card, "updates": len(curve),
+                          "frames": curve[-1]["frames"], "wall_s": wall,
+                          "frames_per_s": curve[-1]["frames"] / wall,
+                          "decisions_per_s": sum(r["decisions"] for r in curve) / wall},
+                         indent=1))
+        return
     with initialize_config_module("maipp_bench.conf", version_base=None):
         cfg = compose("train", overrides=args.overrides)
     torch.set_num_threads(cfg.threads)
