@@ -156,33 +156,38 @@ class GPBelief:
         dense = 2 * n_sel >= sel.numel()
         idx = sel.nonzero().squeeze(-1)
 
-        def rows(t: torch.Tensor, h: int | None = None, square: bool = False) -> torch.Tensor:
+        def rows(t: torch.Tensor, tag: str, h: int | None = None,
+                 square: bool = False) -> torch.Tensor:
             """Per-belief rows of ``t [*B, ...]`` (first ``h`` slots): a view when dense, else
-            a gather of the selected beliefs (slicing first, so only the prefix is copied)."""
+            a gather of the selected beliefs (slicing first, so only the prefix is copied)
+            into a reused buffer."""
             flat_t = t.reshape(-1, *t.shape[len(bshape):])
             if h is not None:
                 flat_t = flat_t[:, :h, :h] if square else flat_t[:, :h]
-            return flat_t if dense else flat_t[idx]
+            if dense:
+                return flat_t
+            out = _scratch(tag, (len(idx), *flat_t.shape[1:]), t.dtype, t.device)
+            return torch.index_select(flat_t, 0, idx, out=out)
 
         bshape = tuple(self.batch_size)
         dtype, dev = self.factor_inv.dtype, self.factor_inv.device
-        fm = rows(mask)
-        n = rows(self.count)
+        fm = rows(mask, "mask")
+        n = rows(self.count, "count")
         n_new = fm.sum(-1)
         if bool((n + n_new > cap).any()):
             raise RuntimeError(f"GPBelief capacity ({cap}) exceeded")
         # Move each belief's selected points to the front, keeping their order.
         order = torch.argsort((~fm).to(torch.int8), dim=-1, stable=True)
         fm = fm.gather(-1, order)
-        xs = rows(x).gather(-2, order.unsqueeze(-1).expand(-1, -1, 2)).to(dtype)
-        ys = rows(y).gather(-2, order.unsqueeze(-1).expand(-1, -1, nc)).to(dtype)
+        xs = rows(x, "x").gather(-2, order.unsqueeze(-1).expand(-1, -1, 2)).to(dtype)
+        ys = rows(y, "y").gather(-2, order.unsqueeze(-1).expand(-1, -1, nc)).to(dtype)
         # Work on the used prefix only: rows >= h are identity/zero in every selected belief.
         h = int(n.max())
         w_new = min(cap, h + p)  # columns the new rows of L^-1 can touch
-        Li = rows(self.factor_inv, h, square=True)
-        X = rows(self.points, h)
-        Z = rows(self.whitened, h)
-        V = rows(self.cross, h)
+        Li = rows(self.factor_inv, "factor_inv", h, square=True)
+        X = rows(self.points, "points", h)
+        Z = rows(self.whitened, "whitened", h)
+        V = rows(self.cross, "cross", h)
         # Query points per belief without materialising the broadcast over beliefs.
         qb = query.to(dtype).expand(*bshape, nq, 2)
         q = qb.reshape(-1, nq, 2) if qb.is_contiguous() else None
@@ -350,6 +355,27 @@ class GPBelief:
             ..., None]
         mean = mu_now.reshape(-1, qs)[:, None] + ((ls_inv @ innov) * u).sum(-2)
         return mean.reshape(*cand_shape, qs), var
+
+
+_SCRATCH: dict[tuple, torch.Tensor] = {}
+
+
+def _scratch(tag: str, shape: tuple[int, ...], dtype: torch.dtype,
+             device: torch.device) -> torch.Tensor:
+    """A grow-only buffer of ``shape`` for ``tag``, reused across calls.
+
+    The gathers of :meth:`GPBelief.add` reach hundreds of MB at E = 1024; a fresh
+    allocation that large is mmapped and page-faulted on every call (glibc serves blocks
+    above 32 MB straight from mmap), which cost three times the gather itself on CPU.
+    Contents are overwritten by the next call with the same tag: callers use them locally.
+    """
+    key = (tag, dtype, device)
+    need = math.prod(shape)
+    buf = _SCRATCH.get(key)
+    if buf is None or buf.numel() < need:
+        buf = torch.empty(need, dtype=dtype, device=device)
+        _SCRATCH[key] = buf
+    return buf[:need].view(shape)
 
 
 def cholesky_inverse_small(s: torch.Tensor) -> torch.Tensor:
