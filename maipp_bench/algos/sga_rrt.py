@@ -28,6 +28,8 @@ from maipp_bench.envs import rng
 from maipp_bench.envs.belief import interest_trace
 from maipp_bench.envs.maipp_env import EpisodeState, MAIPPEnv
 
+_KEPT_VERTICES = 32  # vertices of a best path kept for the next plan (RRT step 0.1: ~3.2)
+
 
 @register_policy("sga_rrt")
 class SGARRTPolicy(PlannerPolicy):
@@ -43,6 +45,7 @@ class SGARRTPolicy(PlannerPolicy):
         step: float = 0.1,
         execute: float = 0.2,
         max_candidates: int = 64,
+        reuse_plan: bool = True,
     ) -> None:
         super().__init__(env, seeds)
         if not 0 < min_length <= max_length:
@@ -51,6 +54,7 @@ class SGARRTPolicy(PlannerPolicy):
         self.a, self.b = min_length, max_length
         self.iterations, self.step, self.execute = iterations, step, execute
         self.max_candidates = max_candidates
+        self.reuse_plan = reuse_plan
         e, m = env.n_envs, env.n_agents
         self.max_points = int(math.floor((max_length + env.config.sample_spacing)
                                          / env.config.sample_spacing)) + 1
@@ -58,20 +62,39 @@ class SGARRTPolicy(PlannerPolicy):
         self.plans = torch.zeros(e, m, self.max_points, 2, dtype=torch.float64,
                                  device=env.device)
         self.plan_mask = torch.zeros(e, m, self.max_points, dtype=torch.bool, device=env.device)
+        # Each agent's last best path (polyline, root first): what it has not executed yet
+        # seeds its next tree, so a good plan survives the replan instead of being redrawn.
+        self.path = torch.zeros(e, m, _KEPT_VERTICES, 2, dtype=torch.float64, device=env.device)
+        self.path_mask = torch.zeros(e, m, _KEPT_VERTICES, dtype=torch.bool, device=env.device)
 
     # ------------------------------------------------------------------ RRT
-    def _grow(self, root: torch.Tensor, key: torch.Tensor):
-        """Batched plain RRT from ``root [E, 2]``: nodes, parents, path costs, depths."""
-        e, n = root.shape[0], self.iterations + 1
+    def _grow(self, root: torch.Tensor, key: torch.Tensor, chain: torch.Tensor | None = None,
+              chain_mask: torch.Tensor | None = None):
+        """Batched plain RRT from ``root [E, 2]``: nodes, parents, path costs, depths.
+
+        ``chain [E, R, 2]`` (``chain_mask``: real vertices first) is a path from the root
+        that the tree starts with; padding vertices sit on the root (never nearest: ties go
+        to the root, index 0) with cost 0, so they are never candidates.
+        """
+        e = root.shape[0]
+        r = 0 if chain is None else chain.shape[1]
+        n = self.iterations + 1 + r
         samples = rng.uniform(key, (self.iterations, 2))
         nodes = torch.zeros(e, n, 2, dtype=torch.float64, device=root.device)
         parent = torch.zeros(e, n, dtype=torch.int64, device=root.device)
         cost = torch.zeros(e, n, dtype=torch.float64, device=root.device)
         depth = torch.zeros(e, n, dtype=torch.int64, device=root.device)
         nodes[:, 0] = root
+        if r:
+            nodes[:, 1 : r + 1] = torch.where(chain_mask.unsqueeze(-1), chain, root.unsqueeze(1))
+            seg = (nodes[:, 1 : r + 1] - nodes[:, :r]).norm(dim=-1) * chain_mask
+            cost[:, 1 : r + 1] = torch.cumsum(seg, -1)
+            steps = torch.arange(1, r + 1, device=root.device)
+            parent[:, 1 : r + 1] = torch.where(chain_mask, steps - 1, 0)
+            depth[:, 1 : r + 1] = torch.where(chain_mask, steps, 0)
         ar = torch.arange(e, device=root.device)
-        for i in range(self.iterations):
-            s = samples[:, i]
+        for i in range(r, r + self.iterations):
+            s = samples[:, i - r]
             d2 = ((nodes[:, : i + 1] - s.unsqueeze(1)) ** 2).sum(-1)
             j = d2.argmin(-1)
             near = nodes[ar, j]
@@ -81,6 +104,14 @@ class SGARRTPolicy(PlannerPolicy):
             parent[:, i + 1], cost[:, i + 1] = j, cost[ar, j] + move
             depth[:, i + 1] = depth[ar, j] + 1
         return nodes, parent, cost, depth
+
+    def _remainder(self, st: EpisodeState, ar: torch.Tensor, a: torch.Tensor):
+        """The part of agent ``a``'s last best path beyond the ``execute`` it followed
+        (empty at an episode's first decision): ``[E, R, 2]`` and its mask, real first."""
+        path, mask = self.path[ar, a], self.path_mask[ar, a] & (st.steps > 0).unsqueeze(-1)
+        mask = mask & (polyline_lengths(path, mask) > self.execute + 1e-9)
+        order = torch.argsort((~mask).to(torch.int8), dim=-1, stable=True)
+        return path.gather(-2, order.unsqueeze(-1).expand(-1, -1, 2)), mask.gather(-1, order)
 
     def _branches(self, nodes, parent, cost, depth, key):
         """Up to ``max_candidates`` branches with length in [a, b] (else the longest ones),
@@ -124,7 +155,8 @@ class SGARRTPolicy(PlannerPolicy):
         for a, active in sga_rounds(st):  # one round per deciding agent, all envs at once
             key = rng.derive(self.keys, st.steps, a)
             root = st.roadmap.nodes[ar, st.cur[ar, a]]
-            paths, vmask, valid = self._branches(*self._grow(root, rng.derive(key, 1)),
+            chain = self._remainder(st, ar, a) if self.reuse_plan else (None, None)
+            paths, vmask, valid = self._branches(*self._grow(root, rng.derive(key, 1), *chain),
                                                  rng.derive(key, 2))
             pts, pmask = measurement_points(paths, vmask, st.since_sample[ar, a].unsqueeze(-1)
                                             .expand(-1, paths.shape[1]),
@@ -154,4 +186,9 @@ class SGARRTPolicy(PlannerPolicy):
             self.plans = torch.where(sel[..., None, None], pts[ar, best].unsqueeze(1), self.plans)
             self.plan_mask = torch.where(sel[..., None], pmask[ar, best].unsqueeze(1),
                                          self.plan_mask)
+            kept = min(_KEPT_VERTICES, path.shape[1])
+            keep_path = torch.nn.functional.pad(path[:, :kept], (0, 0, 0, _KEPT_VERTICES - kept))
+            keep_mask = torch.nn.functional.pad(pm[:, :kept], (0, _KEPT_VERTICES - kept))
+            self.path = torch.where(sel[..., None, None], keep_path.unsqueeze(1), self.path)
+            self.path_mask = torch.where(sel[..., None], keep_mask.unsqueeze(1), self.path_mask)
         return action
