@@ -124,7 +124,12 @@ def main(argv: list[str] | None = None) -> dict:
                 pass
             checkpoints[name] = {"path": str(shown), "sha256": file_sha256(path)}
             policy_kwargs.setdefault(name, {})["checkpoint"] = str(path)
-    match = {m: {"checkpoint_sha256": c["sha256"]} for m, c in checkpoints.items()}
+    # Every row records the method's fingerprint (and a learned method's checkpoint): rows
+    # of another algorithm version, params or checkpoint are neither reused nor reported.
+    fingerprints = {m: algos.get_method(m).fingerprint() for m in methods}
+    match = {m: {"method_sha256": fingerprints[m],
+                 **({"checkpoint_sha256": checkpoints[m]["sha256"]} if m in checkpoints else {})}
+             for m in methods}
     settings = list(suite.settings)
     if args.budgets:
         budgets = set(args.budgets)
@@ -200,6 +205,7 @@ def main(argv: list[str] | None = None) -> dict:
     board = leaderboard.build(protocol, suite, settings, methods, rows_by_method, command,
                               subset, commit)
     board["checkpoints"] = checkpoints
+    board["method_sha256"] = fingerprints
     target = Path(args.leaderboards) if subset is None else out_root / "leaderboards"
     paths = leaderboard.write(board, target)
     print(f"wrote {', '.join(str(p) for p in paths)}")

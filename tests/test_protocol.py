@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -109,6 +110,25 @@ def test_rerun_recomputes_nothing_and_same_seeds_give_identical_rows(smoke_board
     assert _rows_without_timing(again) == _rows_without_timing(board)
     fresh = _run(tmp_path)  # recomputed from scratch in a new directory
     assert _rows_without_timing(fresh) == _rows_without_timing(board)
+
+
+def test_rows_of_another_algorithm_version_are_neither_reused_nor_reported(
+        smoke_board, tmp_path, monkeypatch):
+    board, tmp = smoke_board
+    shutil.copytree(tmp / "res", tmp_path / "res")
+    store = tmp_path / "res" / "smoke" / "greedy.jsonl"
+    old_rows = store.read_text().splitlines()
+    monkeypatch.setattr(algos.POLICIES["greedy"], "version", 99, raising=False)
+    again = eval_main(["--suite", "smoke", "--methods", "greedy", "--out",
+                       str(tmp_path / "res"), "--leaderboards", str(tmp_path / "lb"),
+                       "--no-progress"])
+    new_rows = store.read_text().splitlines()[len(old_rows):]
+    assert len(new_rows) == len(old_rows)  # every episode recomputed
+    fingerprint = algos.get_method("greedy").fingerprint()
+    assert {json.loads(r)["method_sha256"] for r in new_rows} == {fingerprint}
+    assert again["method_sha256"]["greedy"] == fingerprint
+    before = {r["setting"]: r["n"] for r in board["rows"] if r["method"] == "greedy"}
+    assert {r["setting"]: r["n"] for r in again["rows"]} == before  # old rows not counted
 
 
 def test_killed_eval_resumes_to_the_same_file(smoke_board, tmp_path):

@@ -33,6 +33,8 @@ class PlannerPolicy:
             keyed by (seed, step), so an episode's actions do not depend on the batch.
     """
 
+    version = 1  # bump when a subclass's algorithm changes (see MethodSpec.fingerprint)
+
     def __init__(self, env: MAIPPEnv, seeds: torch.Tensor) -> None:
         self.env = env
         self.keys = rng.derive(rng.seed_key(0x5EED, env.device), seeds.to(env.device))

@@ -8,6 +8,8 @@ parameters. Adding a method is one module (the policy, decorated with
 
 from __future__ import annotations
 
+import hashlib
+import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -50,6 +52,15 @@ class MethodSpec:
         from maipp_bench.algos.checkpoint import resolve
 
         return resolve(override or self.params.get("checkpoint", self.name))
+
+    def fingerprint(self) -> str:
+        """sha256 of what decides this method's actions: policy, its ``version`` (bumped
+        whenever the algorithm changes), params and risk handling. Stored with every
+        result row, so rows of an older algorithm are never reused or reported."""
+        version = getattr(POLICIES[self.policy], "version", 1)
+        spec = {"policy": self.policy, "version": version, "params": self.params,
+                "models_risk": self.models_risk}
+        return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()
 
     def build(self, env: Any, seeds: Any, **extra: Any) -> Any:
         """Instantiate the policy for a batched env and per-episode method seeds."""
