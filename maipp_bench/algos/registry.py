@@ -43,6 +43,14 @@ class MethodSpec:
     learned: bool = False
     params: dict[str, Any] = field(default_factory=dict)
     description: str = ""
+    prune_roadmap: bool | None = None  # None: prune exactly when the method ignores risk
+
+    @property
+    def prunes_roadmap(self) -> bool:
+        """Whether the method runs on the roadmap without nodes of true risk > 0.7: by
+        default the risk-unaware ones (paper); a YAML may say otherwise, e.g. to measure the
+        traps a risk-unaware policy falls into on the full roadmap."""
+        return (not self.models_risk) if self.prune_roadmap is None else self.prune_roadmap
 
     def checkpoint(self, override: str | None = None) -> Path | None:
         """The checkpoint file a learned method runs (``override`` or its YAML's), resolved;
@@ -60,6 +68,8 @@ class MethodSpec:
         version = getattr(POLICIES[self.policy], "version", 1)
         spec = {"policy": self.policy, "version": version, "params": self.params,
                 "models_risk": self.models_risk}
+        if self.prune_roadmap is not None:
+            spec["prune_roadmap"] = self.prune_roadmap
         return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()
 
     def build(self, env: Any, seeds: Any, **extra: Any) -> Any:
@@ -69,13 +79,15 @@ class MethodSpec:
 
 def _load(path: Path) -> MethodSpec:
     raw = yaml.safe_load(path.read_text()) or {}
-    known = {"policy", "models_risk", "learned", "params", "description"}
+    known = {"policy", "models_risk", "learned", "params", "description", "prune_roadmap"}
     unknown = set(raw) - known
     if unknown:
         raise ValueError(f"{path}: unknown keys {sorted(unknown)}; allowed: {sorted(known)}")
     return MethodSpec(name=path.stem, policy=raw["policy"], models_risk=bool(raw["models_risk"]),
                       learned=bool(raw.get("learned", False)), params=dict(raw.get("params") or {}),
-                      description=str(raw.get("description", "")))
+                      description=str(raw.get("description", "")),
+                      prune_roadmap=None if raw.get("prune_roadmap") is None
+                      else bool(raw["prune_roadmap"]))
 
 
 def method_names() -> list[str]:

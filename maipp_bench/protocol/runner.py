@@ -30,7 +30,7 @@ def method_seeds(instance_seeds: list[int], trial_seed: int) -> torch.Tensor:
 
 def task_config(method: MethodSpec, cfg: MAIPPConfig) -> MAIPPConfig:
     """Risk-unaware methods plan on the roadmap without nodes of true risk > 0.7 (paper)."""
-    if cfg.risk_enabled and not method.models_risk:
+    if cfg.risk_enabled and method.prunes_roadmap:
         return cfg.replace(prune_risky_nodes=True)
     return cfg
 
