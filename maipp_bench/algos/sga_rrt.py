@@ -8,6 +8,9 @@ belief, conditioned first on its teammates' planned paths and remaining edges, a
 best. The env moves on the roadmap, so executing "the first 0.2 of the best path" means
 taking the feasible neighbour nearest to the point 0.2 along it; the agent replans at its
 next decision (ours: the roadmap adaptation of the reference's continuous execution).
+With ``reuse_plan`` (ours, on in the YAMLs) the next tree starts from the unexecuted rest
+of the last best path, so a good plan survives the replan: fresh trees at every edge made
+the agents dither (docs/protocol.md).
 """
 
 from __future__ import annotations
