@@ -16,6 +16,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.ticker import FuncFormatter  # noqa: E402
 
 
 def read_curve(source: str | Path) -> list[dict[str, Any]]:
@@ -41,6 +42,8 @@ def plot_curves(sources: dict[str, list[dict[str, Any]]], out: str | Path) -> Pa
                 ax.plot(*zip(*pts), marker="." if len(pts) < 40 else None, label=name)
         ax.set_title(title)
         ax.set_xlabel("env frames")
+        # Thousands as "20k": full numbers run into each other on narrow panels.
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x / 1000:g}k" if x else "0"))
         ax.grid(alpha=0.3)
     axes[0].legend()
     out = Path(out)
