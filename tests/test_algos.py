@@ -31,11 +31,42 @@ def test_method_plays_valid_episodes(name, comm_range, tiny_checkpoint):
     assert strip == [{k: v for k, v in r.items() if k != "planning_s"} for r in again]
 
 
-def test_risk_unaware_methods_get_the_pruned_roadmap():
+def test_risk_unaware_methods_get_the_pruned_roadmap_unless_their_yaml_says_otherwise():
     cfg = MAIPPConfig(**SMALL)
-    assert task_config(algos.get_method("greedy"), cfg).prune_risky_nodes
+    pruned = {name: task_config(algos.get_method(name), cfg).prune_risky_nodes
+              for name in ("greedy", "catnipp_greedy", "ours_greedy",
+                           "catnipp_greedy_full_roadmap")}
+    assert pruned == {"greedy": True, "catnipp_greedy": True, "ours_greedy": False,
+                      "catnipp_greedy_full_roadmap": False}
     assert not task_config(algos.get_method("greedy"), cfg.replace(risk_enabled=False)) \
         .prune_risky_nodes
+    assert (algos.get_method("catnipp_greedy").fingerprint()
+            != algos.get_method("catnipp_greedy_full_roadmap").fingerprint())
+
+
+def test_sga_rrt_grows_its_next_tree_from_the_rest_of_its_last_best_path():
+    from maipp_bench.algos.paths import polyline_lengths
+    from maipp_bench.envs import MAIPPEnv, rng
+
+    env = MAIPPEnv(MAIPPConfig(**SMALL), batch_size=[2])
+    td = env.reset()
+    policy = algos.get_method("sga_rrt_0.9_1.0").build(env, torch.arange(2))
+    ar, agent = torch.arange(2), torch.zeros(2, dtype=torch.int64)
+    assert not policy._remainder(env.episode, ar, agent)[1].any()  # nothing before a plan
+    td = env.step(policy(td))["next"]
+    rest, mask = policy._remainder(env.episode, ar, agent)
+    path, real = policy.path[ar, agent], policy.path_mask[ar, agent]
+    beyond = real & (polyline_lengths(path, real) > policy.execute + 1e-9)
+    assert mask.any(-1).all() and torch.equal(mask.sum(-1), beyond.sum(-1))
+    assert torch.equal(rest[mask], path[beyond])  # the unexecuted vertices, in order
+    root = env.episode.roadmap.nodes[ar, env.episode.cur[ar, agent]]
+    nodes, parent, cost, depth = policy._grow(root, rng.derive(rng.seed_key(1), ar), rest, mask)
+    r = rest.shape[1]
+    chain = torch.arange(1, r + 1)
+    assert torch.equal(nodes[:, 1 : r + 1][mask], rest[mask])
+    assert torch.equal(parent[:, 1 : r + 1][mask], (chain - 1).expand(2, r)[mask])
+    assert bool((cost[:, 1 : r + 1].diff(dim=-1)[mask[:, 1:]] > 0).all())
+    assert torch.equal(depth[:, 1 : r + 1][mask], chain.expand(2, r)[mask])
 
 
 def test_planner_parameters_are_checked():

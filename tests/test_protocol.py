@@ -80,22 +80,6 @@ def test_every_method_yaml_names_a_registered_policy():
     assert used == set(algos.POLICIES)
 
 
-def test_risk_unaware_methods_get_the_pruned_roadmap_unless_their_yaml_says_otherwise():
-    from maipp_bench.envs import MAIPPConfig
-    from maipp_bench.protocol.runner import task_config
-
-    cfg = MAIPPConfig()
-    pruned = {name: task_config(algos.get_method(name), cfg).prune_risky_nodes
-              for name in ("greedy", "catnipp_greedy", "ours_greedy",
-                           "catnipp_greedy_full_roadmap")}
-    assert pruned == {"greedy": True, "catnipp_greedy": True, "ours_greedy": False,
-                      "catnipp_greedy_full_roadmap": False}
-    assert not task_config(algos.get_method("greedy"),
-                           cfg.replace(risk_enabled=False)).prune_risky_nodes
-    assert (algos.get_method("catnipp_greedy").fingerprint()
-            != algos.get_method("catnipp_greedy_full_roadmap").fingerprint())
-
-
 def test_smoke_suite_end_to_end(smoke_board):
     board, tmp = smoke_board
     assert board["protocol"]["sha256"] == PINNED_SHA256[1]
