@@ -366,7 +366,8 @@ def _scratch(tag: str, shape: tuple[int, ...], dtype: torch.dtype,
 
     The gathers of :meth:`GPBelief.add` reach hundreds of MB at E = 1024; a fresh
     allocation that large is mmapped and page-faulted on every call (glibc serves blocks
-    above 32 MB straight from mmap), which cost three times the gather itself on CPU.
+    above 32 MB straight from mmap): 67 ms against 19 ms per gather + product at E = 1024
+    (``benchmarks/env_profile.py``).
     Contents are overwritten by the next call with the same tag: callers use them locally.
     """
     key = (tag, dtype, device)

@@ -1,0 +1,108 @@
+"""Where a batched ``MAIPPEnv`` step spends its time, and what the belief gather costs.
+
+1. Steady-state profile: E envs under a random masked policy with auto-reset (as in
+   ``env_throughput.py``), warmed up until episodes of every age are in the batch, then
+   ``cProfile`` over ``--steps`` steps; prints milliseconds per step (cumulative) of the
+   phases named below.
+2. The cross-covariance gather of ``GPBelief.add`` in isolation (S of E beliefs, h rows of
+   Q = 1101 columns, P new points): a fresh gather (a new tensor each call), a gather into
+   a reused buffer (what ``add`` does), and a gather-free weighted row sum
+   (``embedding_bag``; not used: it changes the summation order, hence result bits).
+
+Usage:
+    OMP_NUM_THREADS=1 python benchmarks/env_profile.py --envs 1024
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import pstats
+import time
+
+import torch
+import torch.nn.functional as F
+
+from maipp_bench.envs import MAIPPConfig, MAIPPEnv
+
+PHASES = {  # label -> (file suffix, function name) as cProfile names them
+    "whole step (rand_action excluded)": ("torchrl/envs/common.py", "step_and_maybe_reset"),
+    "  env step (MAIPPEnv._step)": ("maipp_env.py", "_step"),
+    "    belief update (GPBelief.add)": ("belief.py", "add"),
+    "    observation (_observe, step and reset)": ("maipp_env.py", "_observe"),
+    "  partial resets (EnvBase.reset)": ("torchrl/envs/common.py", "reset"),
+    "    new episodes (_new_episodes)": ("maipp_env.py", "_new_episodes"),
+    "    TorchRL merge (_update_during_reset)": ("torchrl/envs/utils.py", "_update_during_reset"),
+}
+
+
+def profile_steps(n_envs: int, warmup: int, steps: int) -> dict[str, float]:
+    """Milliseconds per step of each phase (cumulative time), steady state."""
+    env = MAIPPEnv(MAIPPConfig(budget=3.0), batch_size=[n_envs])
+    env.set_seed(0)
+    td = env.reset()
+    for _ in range(warmup):
+        _, td = env.step_and_maybe_reset(env.rand_action(td))
+    prof = cProfile.Profile()
+    prof.enable()
+    for _ in range(steps):
+        _, td = env.step_and_maybe_reset(env.rand_action(td))
+    prof.disable()
+    stats = pstats.Stats(prof).stats
+    out = {}
+    for label, (suffix, func) in PHASES.items():
+        cum = sum(v[3] for (file, _, name), v in stats.items()
+                  if name == func and file.endswith(suffix))
+        out[label] = 1000 * cum / steps
+    return out
+
+
+def gather_costs(s: int, e: int, h: int, q: int, p: int, repeats: int) -> dict[str, float]:
+    """Milliseconds per call of three ways to form B^T V for S of E beliefs."""
+    cap = h + 4
+    v = torch.randn(e, cap, q, dtype=torch.float64)
+    idx = torch.randperm(e)[:s].sort().values
+    bmt = torch.randn(s, p, h, dtype=torch.float64)
+    buf = torch.empty(s, h, q, dtype=torch.float64)
+    rows = (idx.view(s, 1, 1) * cap + torch.arange(h).view(1, 1, h)).expand(s, p, h).reshape(-1)
+    offsets = torch.arange(s * p) * h
+    flat = v.view(e * cap, q)
+    ways = {
+        "fresh gather + bmm": lambda: bmt @ v[:, :h][idx],
+        "gather into a reused buffer + bmm (GPBelief.add)":
+            lambda: bmt @ torch.index_select(v[:, :h], 0, idx, out=buf),
+        "embedding_bag, no gather (changes bits)":
+            lambda: F.embedding_bag(rows, flat, offsets, mode="sum",
+                                    per_sample_weights=bmt.reshape(-1)),
+    }
+    out = {}
+    for name, fn in ways.items():
+        fn()
+        t0 = time.perf_counter()
+        for _ in range(repeats):
+            fn()
+        out[name] = 1000 * (time.perf_counter() - t0) / repeats
+    return out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--envs", type=int, default=1024)
+    p.add_argument("--warmup", type=int, default=150)
+    p.add_argument("--steps", type=int, default=40)
+    p.add_argument("--gather", type=int, nargs=3, default=[250, 49, 3], metavar=("S", "H", "P"),
+                   help="selected beliefs, rows of V and new points for the gather timing")
+    args = p.parse_args()
+    torch.set_num_threads(1)
+    print(f"profile: E={args.envs}, {args.steps} steps after {args.warmup} (cProfile "
+          f"overhead included), ms per step")
+    for label, ms in profile_steps(args.envs, args.warmup, args.steps).items():
+        print(f"  {label:48s} {ms:8.1f}")
+    s, h, pts = args.gather
+    print(f"gather: S={s} of E={args.envs} beliefs, h={h}, Q=1101, P={pts}, ms per call")
+    for label, ms in gather_costs(s, args.envs, h, 1101, pts, 10).items():
+        print(f"  {label:48s} {ms:8.1f}")
+
+
+if __name__ == "__main__":
+    main()
