@@ -70,3 +70,20 @@ def test_policy_never_picks_a_masked_slot(obs, feature_set):
 def test_unknown_feature_set_is_refused():
     with pytest.raises(ValueError, match="valid"):
         feature_columns("nope")
+
+
+@pytest.mark.parametrize("layers", [1, 2])
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_encoder_read_at_decoder_rows_equals_full_encoder(layers, dtype, tol):
+    # The decoder reads 1 + k node embeddings; running the last layer's queries and
+    # feed-forward on those rows only must be the same function as the full encoder.
+    torch.manual_seed(0)
+    net = AttentionPolicyNet(AttentionConfig(encoder_layers=layers)).to(dtype)
+    x = torch.randn(5, 41, 128, dtype=dtype)
+    read = torch.randint(0, 41, (5, 9))
+    read[:, 1] = read[:, 0]  # a repeated index is read twice, as any gather would
+    full = net.encoder(x).gather(1, read.unsqueeze(-1).expand(-1, -1, 128))
+    torch.testing.assert_close(net.encode(x, read), full, rtol=tol, atol=tol)
+    with torch.no_grad():  # the inference fast path of nn.TransformerEncoder as well
+        full = net.encoder(x).gather(1, read.unsqueeze(-1).expand(-1, -1, 128))
+        torch.testing.assert_close(net.encode(x, read), full, rtol=tol, atol=tol)

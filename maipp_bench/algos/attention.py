@@ -99,18 +99,33 @@ class AttentionPolicyNet(nn.Module):
             mask: ``[B, k]`` bool feasibility mask (at least one True per row).
             state: LSTM ``(h, c)`` of the agent's trajectory so far, ``[B, 128]`` each.
         """
-        b = features.shape[0]
-        h = self.encoder(self.embed(features) + self.pos(pos_enc))  # [B, N, d]
-        ar = torch.arange(b, device=h.device)
-        cur = h[ar, current]
+        read = torch.cat([current.unsqueeze(-1), neighbors], -1)  # [B, 1 + k]
+        h = self.encode(self.embed(features) + self.pos(pos_enc), read)  # [B, 1 + k, d]
+        cur, nbr = h[:, 0], h[:, 1:]
         thr = torch.full_like(budget, self.threshold)
         cur = self.current(torch.cat([cur, budget, thr], -1))
         state = self.lstm(cur, state)
         q = state[0]
-        nbr = h[ar.unsqueeze(-1), neighbors]  # [B, k, d]
         ctx, _ = self.cross(q.unsqueeze(1), nbr, nbr, key_padding_mask=~mask)
         ctx = ctx.squeeze(1) + q
         scores = (self.query(ctx).unsqueeze(1) * self.key(nbr)).sum(-1)
         logits = self.cfg.clip * torch.tanh(scores / math.sqrt(h.shape[-1]))
         logits = logits.masked_fill(~mask, -torch.inf)
         return logits, self.value_head(ctx), state
+
+    def encode(self, x: torch.Tensor, read: torch.Tensor) -> torch.Tensor:
+        """The encoder's output ``[B, R, d]`` at the node indices ``read`` ``[B, R]`` only.
+
+        The decoder reads 1 + k of the N node embeddings, so the last layer runs its
+        queries and feed-forward on those rows alone (keys and values still span all
+        nodes): the same function as ``self.encoder(x)[read]`` at about 1/7 of the cost
+        for one layer over 201 nodes (tested against the full encoder).
+        """
+        *full, last = self.encoder.layers
+        for layer in full:
+            x = layer(x)
+        rows = read.unsqueeze(-1).expand(-1, -1, x.shape[-1])
+        kv = last.norm1(x)
+        y = x.gather(1, rows)
+        y = y + last.self_attn(kv.gather(1, rows), kv, kv, need_weights=False)[0]
+        return y + last.linear2(last.activation(last.linear1(last.norm2(y))))

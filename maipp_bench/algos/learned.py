@@ -42,6 +42,10 @@ class LearnedPolicy(PlannerPolicy):
         core: an in-memory network (periodic evaluation during training).
     """
 
+    # 2: the encoder's last layer runs only at the rows the decoder reads (same function,
+    # float rounding differs, so rows of version 1 are recomputed, not mixed in).
+    version = 2
+
     def __init__(self, env: MAIPPEnv, seeds: torch.Tensor, checkpoint: str | None = None,
                  mode: str = "greedy", rollouts: int = 8, depth: int = 5,
                  core: AttentionCore | None = None) -> None:
