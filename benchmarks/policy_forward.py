@@ -1,0 +1,80 @@
+"""Cost of the attention policy's encoder: the full encoder vs. reading only 1 + k rows.
+
+The decoder of :class:`~maipp_bench.algos.attention.AttentionPolicyNet` reads the current
+node's and the k neighbours' embeddings; ``encode`` runs the last encoder layer's queries
+and feed-forward on those rows only. This script times, side by side in one run and on the
+same inputs, the network with ``encode`` and with the full encoder followed by a gather
+(what version 1 of the policy computed), for the two shapes that matter:
+
+* ``train``: forward + backward of a PPO minibatch (256 decision rows);
+* ``ti``: inference forward of one TI(8, 5) rollout step for 30 deciding agents (240 rows).
+
+Usage:
+    OMP_NUM_THREADS=1 python benchmarks/policy_forward.py [--repeats 5] [--nodes 201]
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import time
+
+import torch
+
+from maipp_bench.algos.attention import AttentionConfig, AttentionPolicyNet
+
+
+def full_encode(net: AttentionPolicyNet, x: torch.Tensor, read: torch.Tensor) -> torch.Tensor:
+    """Every node through every layer, then the rows the decoder reads."""
+    return net.encoder(x).gather(1, read.unsqueeze(-1).expand(-1, -1, x.shape[-1]))
+
+
+def timed(fn, repeats: int) -> float:
+    fn()  # warm-up
+    start = time.perf_counter()
+    for _ in range(repeats):
+        fn()
+    return (time.perf_counter() - start) / repeats
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--nodes", type=int, default=201)
+    p.add_argument("--k", type=int, default=10)
+    args = p.parse_args()
+    torch.manual_seed(0)
+    net = AttentionPolicyNet(AttentionConfig())
+    read_only = net.encode
+
+    def inputs(b: int):
+        return (torch.rand(b, args.nodes, 6), torch.rand(b, args.nodes, 32),
+                torch.randint(0, args.nodes, (b,)), torch.rand(b, 1),
+                torch.randint(0, args.nodes, (b, args.k)),
+                torch.ones(b, args.k, dtype=torch.bool))
+
+    train_in, ti_in = inputs(256), inputs(240)
+
+    def train_step():
+        logits, value, _ = net(*train_in)
+        (logits.logsumexp(-1).sum() + value.sum()).backward()
+
+    def ti_step():
+        with torch.no_grad():
+            net(*ti_in)
+
+    print(f"machine: {platform.machine()}, {platform.processor() or 'cpu'}, "
+          f"{torch.get_num_threads()} torch thread(s), N = {args.nodes}, k = {args.k}")
+    print("| shape | full encoder (s) | read rows only (s) | speed-up |")
+    print("|---|---:|---:|---:|")
+    for name, fn in (("train: fwd + bwd, 256 rows", train_step),
+                     ("ti: inference fwd, 240 rows", ti_step)):
+        net.encode = lambda x, read: full_encode(net, x, read)  # noqa: E731
+        full = timed(fn, args.repeats)
+        net.encode = read_only
+        fast = timed(fn, args.repeats)
+        print(f"| {name} | {full:.3f} | {fast:.3f} | {full / fast:.1f}x |")
+
+
+if __name__ == "__main__":
+    main()
