@@ -41,7 +41,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--nodes", type=int, default=201)
-    p.add_argument("--k", type=int, default=10)
+    p.add_argument("--k", type=int, default=20)
     args = p.parse_args()
     torch.manual_seed(0)
     net = AttentionPolicyNet(AttentionConfig())
