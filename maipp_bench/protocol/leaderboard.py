@@ -8,6 +8,7 @@ Timing fields (``planning_s_per_episode``) are the only ones that vary between r
 from __future__ import annotations
 
 import datetime as _dt
+import hashlib
 import json
 import math
 import os
@@ -69,6 +70,26 @@ def aggregate(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def fingerprint_episodes(suite: Suite, eps: list[dict[str, Any]]) -> dict[str, Any]:
+    """What lets anyone check a row without our result files.
+
+    ``spot_check``: the final Tr(P) of the first trial's episodes, in the suite's instance
+    order (recomputing that one batched chunk must give these numbers);
+    ``episodes_sha256``: sha256 of every episode's (instance, trial, Tr(P)), sorted, so a
+    full rerun can be compared bit for bit.
+    """
+    order = {seed: i for i, seed in enumerate(suite.instance_seeds)}
+    first = [r for r in eps if r["trial"] == suite.trial_seeds[0]]
+    first.sort(key=lambda r: order[r["instance"]])
+    listing = sorted((r["instance"], r["trial"], r["trace"]) for r in eps)
+    return {
+        "spot_check": {"trial": suite.trial_seeds[0],
+                       "instances": [r["instance"] for r in first],
+                       "trace": [r["trace"] for r in first]},
+        "episodes_sha256": hashlib.sha256(json.dumps(listing).encode()).hexdigest(),
+    }
+
+
 def _paper_lookup(suite: Suite) -> dict[tuple, tuple[float, float]]:
     if not suite.paper_table:
         return {}
@@ -110,6 +131,7 @@ def build(
                                  ("budget", "comm_range")))
             ref = paper.get(key)
             row["paper_trace_mean"], row["paper_trace_std"] = ref if ref else (None, None)
+            row.update(fingerprint_episodes(suite, eps))
             board_rows.append(row)
     return {
         "suite": suite.name,
