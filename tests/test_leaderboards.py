@@ -1,0 +1,76 @@
+"""The committed leaderboards belong to this code: same protocol, same method fingerprints,
+same shipped checkpoints, and their cheap rows recompute to the numbers they show."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from maipp_bench import algos
+from maipp_bench.protocol.protocol import file_sha256, load_protocol
+from maipp_bench.protocol.runner import run_chunk
+
+ROOT = Path(__file__).resolve().parent.parent
+BOARDS = sorted((ROOT / "leaderboards").glob("*.json"))
+# Spot-check rows whose planner costs less than this per episode (random, greedy, learned
+# greedy decoding); the RRT, oracle and TI rows are checked by fingerprint only.
+CHEAP_S_PER_EPISODE = 0.1
+
+
+def _load(path: Path) -> dict:
+    return json.loads(path.read_text())
+
+
+def test_every_suite_of_the_protocol_with_rows_has_a_board():
+    assert {p.stem for p in BOARDS} >= {"risk_aware", "agents10", "comm", "aoi_bias"}
+
+
+@pytest.mark.parametrize("path", BOARDS, ids=lambda p: p.stem)
+def test_board_matches_protocol_fingerprints_and_checkpoints(path):
+    board = _load(path)
+    protocol = load_protocol(board["protocol"]["version"])
+    assert board["protocol"]["sha256"] == protocol.sha256
+    assert board["subset"] is None and board["rows"]
+    methods = {r["method"] for r in board["rows"]}
+    assert methods == set(board["method_sha256"])
+    for method, sha in board["method_sha256"].items():
+        # A changed algorithm (version, params, policy) must come with rerun rows.
+        assert algos.get_method(method).fingerprint() == sha, method
+    for method, ckpt in board["checkpoints"].items():
+        shipped = algos.get_method(method).checkpoint(None)
+        assert file_sha256(shipped) == ckpt["sha256"], method
+    suite = protocol.suite(board["suite"])
+    for r in board["rows"]:
+        assert r["n"] == suite.n_episodes
+        spot = r["spot_check"]
+        assert spot["trial"] == suite.trial_seeds[0]
+        assert spot["instances"] == list(suite.instance_seeds)
+        assert len(spot["trace"]) == len(suite.instance_seeds)
+
+
+def _cheap_rows():
+    for path in BOARDS:
+        board = _load(path)
+        first = board["rows"][0]["setting"]
+        for r in board["rows"]:
+            if r["setting"] == first and r["planning_s_per_episode"] < CHEAP_S_PER_EPISODE:
+                yield pytest.param(board, r, id=f"{path.stem}-{r['method']}-{first}")
+
+
+@pytest.mark.parametrize("board,row", list(_cheap_rows()))
+def test_committed_row_spot_check_recomputes(board, row):
+    suite = load_protocol(board["protocol"]["version"]).suite(board["suite"])
+    setting = next(s for s in suite.settings if s.key == row["setting"])
+    spec = algos.get_method(row["method"])
+    kwargs = {"checkpoint": str(spec.checkpoint(None))} if spec.learned else {}
+    spot = row["spot_check"]
+    with torch.inference_mode():
+        rows = run_chunk(spec, suite.env_config(setting), spot["instances"], spot["trial"],
+                         **kwargs)
+    # Same seeds, same code: the same episodes. The tolerance only absorbs the last bits a
+    # CPU with other vector units may round differently; a changed decision moves Tr(P)
+    # by far more.
+    assert [r["trace"] for r in rows] == pytest.approx(spot["trace"], rel=1e-9, abs=1e-9)
