@@ -105,6 +105,22 @@ def test_add_in_one_call_equals_one_by_one():
     assert torch.allclose(a.sigma2, b.sigma2, rtol=0, atol=1e-12)
 
 
+def test_add_after_inference_mode_use_works_outside_it():
+    # The gather buffers are reused across calls: an evaluation under inference_mode and a
+    # training run in the same process must not share them (inference tensors are
+    # read-only outside inference mode).
+    query = torch.rand(30, 2, dtype=F64)
+    x, y = torch.rand(4, 2, 2, dtype=F64), torch.randn(4, 2, 1, dtype=F64)
+    mask = torch.zeros(4, 2, dtype=torch.bool)
+    mask[1] = True  # one belief of four takes points: the gather path
+    with torch.inference_mode():
+        inside = GPBelief.empty((4,), 6, 30, 1)
+        inside.add(PRIOR, query, x, y, mask)
+    outside = GPBelief.empty((4,), 6, 30, 1)
+    outside.add(PRIOR, query, x, y, mask)
+    assert torch.equal(outside.mu, inside.mu) and torch.equal(outside.sigma2, inside.sigma2)
+
+
 def test_capacity_overflow_raises():
     gp = GPBelief.empty((1,), 3, 10, 1)
     query = torch.rand(10, 2, dtype=F64)

@@ -369,8 +369,10 @@ def _scratch(tag: str, shape: tuple[int, ...], dtype: torch.dtype,
     above 32 MB straight from mmap): 67 ms against 19 ms per gather + product at E = 1024
     (``benchmarks/env_profile.py``).
     Contents are overwritten by the next call with the same tag: callers use them locally.
+    Buffers made under ``torch.inference_mode`` (evaluation) cannot be written outside it
+    (training in the same process), so each mode keeps its own.
     """
-    key = (tag, dtype, device)
+    key = (tag, dtype, device, torch.is_inference_mode_enabled())
     need = math.prod(shape)
     buf = _SCRATCH.get(key)
     if buf is None or buf.numel() < need:
