@@ -18,10 +18,10 @@ from __future__ import annotations
 import argparse
 import cProfile
 import pstats
-import time
 
 import torch
 import torch.nn.functional as F
+from bench_timing import seconds_per_call
 
 from maipp_bench.envs import MAIPPConfig, MAIPPEnv
 
@@ -75,14 +75,7 @@ def gather_costs(s: int, e: int, h: int, q: int, p: int, repeats: int) -> dict[s
             lambda: F.embedding_bag(rows, flat, offsets, mode="sum",
                                     per_sample_weights=bmt.reshape(-1)),
     }
-    out = {}
-    for name, fn in ways.items():
-        fn()
-        t0 = time.perf_counter()
-        for _ in range(repeats):
-            fn()
-        out[name] = 1000 * (time.perf_counter() - t0) / repeats
-    return out
+    return {name: 1000 * seconds_per_call(fn, repeats) for name, fn in ways.items()}
 
 
 def main() -> None:
@@ -93,6 +86,8 @@ def main() -> None:
     p.add_argument("--gather", type=int, nargs=3, default=[250, 49, 3], metavar=("S", "H", "P"),
                    help="selected beliefs, rows of V and new points for the gather timing")
     args = p.parse_args()
+    if not 1 <= args.gather[0] <= args.envs:
+        p.error(f"--gather S must be in [1, --envs] = [1, {args.envs}], got {args.gather[0]}")
     torch.set_num_threads(1)
     print(f"profile: E={args.envs}, {args.steps} steps after {args.warmup} (cProfile "
           f"overhead included), ms per step")

@@ -17,19 +17,11 @@ from __future__ import annotations
 
 import argparse
 import platform
-import time
 
 import torch
+from bench_timing import seconds_per_call
 
 from maipp_bench.envs import MAIPPConfig, MAIPPEnv
-
-
-def _time(fn, repeats: int) -> float:
-    fn()
-    t0 = time.perf_counter()
-    for _ in range(repeats):
-        fn()
-    return (time.perf_counter() - t0) / repeats * 1e3
 
 
 def main() -> None:
@@ -74,7 +66,7 @@ def main() -> None:
         cells = []
         for threads in (1, 2):
             torch.set_num_threads(threads)
-            cells.append(f"{_time(fn, args.repeats):.1f}")
+            cells.append(f"{1e3 * seconds_per_call(fn, args.repeats):.1f}")
         print(f"| {name} | {cells[0]} | {cells[1]} |")
     torch.set_num_threads(previous)
 

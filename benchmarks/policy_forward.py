@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import argparse
 import platform
-import time
 
 import torch
+from bench_timing import seconds_per_call
 
 from maipp_bench.algos.attention import AttentionConfig, AttentionPolicyNet
 
@@ -27,14 +27,6 @@ from maipp_bench.algos.attention import AttentionConfig, AttentionPolicyNet
 def full_encode(net: AttentionPolicyNet, x: torch.Tensor, read: torch.Tensor) -> torch.Tensor:
     """Every node through every layer, then the rows the decoder reads."""
     return net.encoder(x).gather(1, read.unsqueeze(-1).expand(-1, -1, x.shape[-1]))
-
-
-def timed(fn, repeats: int) -> float:
-    fn()  # warm-up
-    start = time.perf_counter()
-    for _ in range(repeats):
-        fn()
-    return (time.perf_counter() - start) / repeats
 
 
 def main() -> None:
@@ -70,9 +62,9 @@ def main() -> None:
     for name, fn in (("train: fwd + bwd, 256 rows", train_step),
                      ("ti: inference fwd, 240 rows", ti_step)):
         net.encode = lambda x, read: full_encode(net, x, read)  # noqa: E731
-        full = timed(fn, args.repeats)
+        full = seconds_per_call(fn, args.repeats)
         net.encode = read_only
-        fast = timed(fn, args.repeats)
+        fast = seconds_per_call(fn, args.repeats)
         print(f"| {name} | {full:.3f} | {fast:.3f} | {full / fast:.1f}x |")
 
 

@@ -9,11 +9,12 @@ updates after one warm-up update:
   rows per second through forward + backward.
 
 ``--card CARD.json`` instead reports the throughput of a finished run from its checkpoint
-card (the wall time of every update is in its curve).
+card (the wall time of every update is in its curve); ``--split U`` also reports updates
+1..U and U+1.. apart (e.g. a run resumed with other code at update U).
 
 Usage (Hydra overrides as for training):
     python benchmarks/train_throughput.py algo=ours --updates 3
-    python benchmarks/train_throughput.py --card maipp_bench/checkpoints/ours.json
+    python benchmarks/train_throughput.py --card maipp_bench/checkpoints/ours.json --split 70
     python benchmarks/train_throughput.py algo=mappo n_envs=16 device=cuda --out t.json
 """
 
@@ -34,21 +35,33 @@ from maipp_bench.algos.ppo import build_learner
 from maipp_bench.envs.config import MAIPPConfig
 
 
+def card_segment(curve: list[dict], start: int, stop: int) -> dict:
+    """Throughput of updates ``start + 1 .. stop`` of a card's curve (cumulative counters)."""
+    before = curve[start - 1] if start else {"frames": 0, "wall_s": 0.0}
+    rows = curve[start:stop]
+    frames, wall = rows[-1]["frames"] - before["frames"], rows[-1]["wall_s"] - before["wall_s"]
+    decisions = sum(r["decisions"] for r in rows)
+    return {"updates": f"{start + 1}-{stop}", "frames": frames, "decisions": decisions,
+            "wall_s": round(wall, 1), "frames_per_s": frames / wall,
+            "decisions_per_s": decisions / wall}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("overrides", nargs="*")
     p.add_argument("--updates", type=int, default=3)
     p.add_argument("--out")
     p.add_argument("--card", help="report a finished run's throughput from its card")
+    p.add_argument("--split", type=int, nargs="*", default=[],
+                   help="with --card: also report the updates between these update numbers")
     args = p.parse_args()
     if args.card:
         curve = json.load(open(args.card))["curve"]
-        wall = curve[-1]["wall_s"]
-        print(json.dumps({"card": args.card, "updates": len(curve),
-                          "frames": curve[-1]["frames"], "wall_s": wall,
-                          "frames_per_s": curve[-1]["frames"] / wall,
-                          "decisions_per_s": sum(r["decisions"] for r in curve) / wall},
-                         indent=1))
+        cuts = [0, *args.split, len(curve)] if args.split else [0, len(curve)]
+        report = [card_segment(curve, a, b) for a, b in zip(cuts, cuts[1:])]
+        if args.split:
+            report.append(card_segment(curve, 0, len(curve)))
+        print(json.dumps({"card": args.card, "segments": report}, indent=1))
         return
     with initialize_config_module("maipp_bench.conf", version_base=None):
         cfg = compose("train", overrides=args.overrides)

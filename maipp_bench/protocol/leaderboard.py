@@ -70,7 +70,7 @@ def aggregate(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def fingerprint_episodes(suite: Suite, eps: list[dict[str, Any]]) -> dict[str, Any]:
+def row_checks(suite: Suite, eps: list[dict[str, Any]]) -> dict[str, Any]:
     """What lets anyone check a row without our result files.
 
     ``spot_check``: the final Tr(P) of the first trial's episodes, in the suite's instance
@@ -131,7 +131,7 @@ def build(
                                  ("budget", "comm_range")))
             ref = paper.get(key)
             row["paper_trace_mean"], row["paper_trace_std"] = ref if ref else (None, None)
-            row.update(fingerprint_episodes(suite, eps))
+            row.update(row_checks(suite, eps))
             board_rows.append(row)
     return {
         "suite": suite.name,
