@@ -188,6 +188,32 @@ def test_fantasy_posterior_and_grown_match_dense_gp():
             assert float((var[i, c] - ref_var).abs().max()) < 1e-9
 
 
+@pytest.mark.parametrize("dense", [True, False])
+def test_gathered_gives_the_bits_of_index_then_grown(dense):
+    """TI's planning copy (used prefix only, each belief once, then repeated) evolves
+    bit-identically to the full-capacity copy it replaces, whether the adds update every
+    belief in place (dense) or gather the few that take points."""
+    gen = torch.Generator().manual_seed(11)
+    nq, cap, extra, reps = 30, 16, 6, 3
+    query = torch.rand(4, 3, nq, 2, generator=gen, dtype=F64)
+    gp = GPBelief.empty((4, 3), cap, nq, 2)
+    for x, y, mask in _random_batches(gen, (4, 3), 3, 3, "field"):
+        gp.add(PRIOR, query, x, y, mask)
+    e_idx, g_idx = torch.tensor([2, 0, 2]), torch.tensor([1, 1, 0])
+    new = gp.gathered((e_idx, g_idx), extra, torch.float32, repeats=reps)
+    old = gp[e_idx.repeat_interleave(reps), g_idx.repeat_interleave(reps)].grown(
+        extra, torch.float32)
+    assert new.capacity == int(gp.count[e_idx, g_idx].max()) + extra < old.capacity
+    q = query[e_idx, g_idx].repeat_interleave(reps, 0).float()
+    for _ in range(2):  # two rounds of at most 3 points: within the extra room
+        x = torch.rand(9, 3, 2, generator=gen)
+        mask = torch.rand(9, 3, generator=gen) < (0.9 if dense else 0.2)
+        for b in (new, old):
+            b.add(PRIOR, q, x, torch.zeros(9, 3, 2), mask)
+    assert torch.equal(new.mu, old.mu) and torch.equal(new.sigma2, old.sigma2)
+    assert torch.equal(new.count, old.count)
+
+
 def test_fantasy_trace_equals_trace_of_fantasy_variance():
     gen = torch.Generator().manual_seed(9)
     nq, ng = 120, 100

@@ -119,11 +119,12 @@ class LearnedPolicy(PlannerPolicy):
         er, ar = rep(e_idx), rep(a_idx)
         rm = st.roadmap[er]
         nodes = rm.nodes
-        belief = st.belief[er, env.agent_belief_index[ar]]
-        risk_mean = belief.mu[:, g2:, 1].clone()  # the real belief's risk, for mask and UCB
+        g_idx = env.agent_belief_index[a_idx]
+        # the real belief's risk, for mask and UCB
+        risk_mean = rep(st.belief.mu[e_idx, g_idx, g2:, 1])
         max_len = float(st.roadmap.neighbor_dist.masked_fill(~st.roadmap.neighbor_valid, 0).amax())
         per_edge = int(max_len / cfg.sample_spacing) + 2
-        belief = belief.grown(j * per_edge, torch.float32)
+        belief = st.belief.gathered((e_idx, g_idx), j * per_edge, torch.float32, repeats=a)
         query = st.query[er].float()
         feats, enc = rep(rows.get("node_features")).clone(), rep(rows.get("node_encoding"))
         cur, since = rep(rows.get("current_node")), st.since_sample[er, ar]

@@ -121,6 +121,34 @@ class GPBelief:
             count=self.count.clone(), batch_size=self.batch_size,
         )
 
+    def gathered(self, index: tuple[torch.Tensor, ...], extra: int,
+                 dtype: torch.dtype | None = None, repeats: int = 1) -> GPBelief:
+        """The beliefs at batch ``index`` (advanced indices, one per batch dim) as a flat
+        batch, each repeated ``repeats`` times (row ``b * repeats + r`` copies belief b), in
+        ``dtype``, with room for ``extra`` more measurements: what ``self[index]`` then
+        :meth:`grown` give, at a fraction of the copying. Only the used slots are copied
+        (capacity = max count + extra) and each belief once before the repeat; :meth:`add`
+        reads the used prefix only, so its results are the same bits as on the full copy."""
+        dtype = dtype or self.factor_inv.dtype
+        count = self.count[index]
+        h = int(count.max()) if count.numel() else 0
+
+        def take(x: torch.Tensor, widths: tuple[int, ...] = ()) -> torch.Tensor:
+            x = x[index].to(dtype)
+            x = torch.nn.functional.pad(x, widths) if widths else x
+            return x.repeat_interleave(repeats, 0) if repeats > 1 else x
+
+        inv = take(self.factor_inv[..., :h, :h], (0, extra, 0, extra))
+        idx = torch.arange(h, h + extra, device=inv.device)
+        inv[..., idx, idx] = 1.0
+        return GPBelief(
+            points=take(self.points[..., :h, :], (0, 0, 0, extra)), factor_inv=inv,
+            cross=take(self.cross[..., :h, :], (0, 0, 0, extra)),
+            whitened=take(self.whitened[..., :h, :], (0, 0, 0, extra)),
+            mu=take(self.mu), sigma2=take(self.sigma2),
+            count=count.repeat_interleave(repeats, 0), batch_size=[count.numel() * repeats],
+        )
+
     # ------------------------------------------------------------------ updates
     def add(
         self,
