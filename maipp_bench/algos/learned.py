@@ -120,10 +120,10 @@ class LearnedPolicy(PlannerPolicy):
         rm = st.roadmap[er]
         nodes = rm.nodes
         g_idx = env.agent_belief_index[a_idx]
-        # the real belief's risk, for mask and UCB
-        risk_mean = rep(st.belief.mu[e_idx, g_idx, g2:, 1])
+        risk_mean = rep(st.belief.mu[e_idx, g_idx, g2:, 1])  # the real risk: mask and UCB
         max_len = float(st.roadmap.neighbor_dist.masked_fill(~st.roadmap.neighbor_valid, 0).amax())
         per_edge = int(max_len / cfg.sample_spacing) + 2
+        # Each agent's belief copied once (used slots only), then once per rollout.
         belief = st.belief.gathered((e_idx, g_idx), j * per_edge, torch.float32, repeats=a)
         query = st.query[er].float()
         feats, enc = rep(rows.get("node_features")).clone(), rep(rows.get("node_encoding"))
