@@ -25,6 +25,7 @@ import platform
 import torch
 from bench_timing import seconds_per_call
 
+from maipp_bench.algos.learned import samples_per_edge
 from maipp_bench.envs import MAIPPConfig, MAIPPEnv
 
 
@@ -40,6 +41,7 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=10)
     args = p.parse_args()
     torch.set_num_threads(1)
+    torch.manual_seed(0)  # rand_action draws from torch's global generator
     cfg = MAIPPConfig(n_agents=args.agents, budget=args.budget, risk_enabled=args.risk)
     env = MAIPPEnv(cfg, batch_size=[args.envs])
     env.set_seed(0)
@@ -50,10 +52,7 @@ def main() -> None:
     e_idx = torch.arange(args.envs)
     g_idx = env.agent_belief_index[torch.zeros(args.envs, dtype=torch.int64)]
     a = args.rollouts
-    # room for the rollouts' fantasy measurements, as the TI policy sizes it
-    rm = st.roadmap
-    max_len = float(rm.neighbor_dist.masked_fill(~rm.neighbor_valid, 0).amax())
-    extra = args.depth * (int(max_len / cfg.sample_spacing) + 2)
+    extra = args.depth * samples_per_edge(st.roadmap, cfg.sample_spacing)  # as TI sizes it
 
     def old() -> object:
         rep = lambda x: x.repeat_interleave(a, 0)  # noqa: E731

@@ -24,7 +24,7 @@ def _load(path: Path) -> dict:
     return json.loads(path.read_text())
 
 
-def test_every_suite_of_the_protocol_with_rows_has_a_board():
+def test_the_paper_and_dual_domain_suites_have_boards():
     assert {p.stem for p in BOARDS} >= {"risk_aware", "agents10", "comm", "aoi_bias"}
 
 

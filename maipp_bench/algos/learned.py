@@ -25,9 +25,16 @@ from maipp_bench.envs.belief import interest_trace
 from maipp_bench.envs.dynamics import EPS, edge_points, sample_offsets
 from maipp_bench.envs.intent import fit_intent
 from maipp_bench.envs.maipp_env import MAIPPEnv
-from maipp_bench.envs.roadmap import laplacian_encoding
+from maipp_bench.envs.roadmap import Roadmap, laplacian_encoding
 
 MODES = ("greedy", "ti")
+
+
+def samples_per_edge(roadmap: Roadmap, spacing: float) -> int:
+    """Measurement slots one move along any edge of ``roadmap`` can fill (an upper bound):
+    the room a rollout needs per step for its fantasy measurements."""
+    longest = float(roadmap.neighbor_dist.masked_fill(~roadmap.neighbor_valid, 0).amax())
+    return int(longest / spacing) + 2
 
 
 @register_policy("attention")
@@ -121,11 +128,10 @@ class LearnedPolicy(PlannerPolicy):
         nodes = rm.nodes
         g_idx = env.agent_belief_index[a_idx]
         risk_mean = rep(st.belief.mu[e_idx, g_idx, g2:, 1])  # the real risk: mask and UCB
-        max_len = float(st.roadmap.neighbor_dist.masked_fill(~st.roadmap.neighbor_valid, 0).amax())
-        per_edge = int(max_len / cfg.sample_spacing) + 2
+        per_edge = samples_per_edge(st.roadmap, cfg.sample_spacing)
         # Each agent's belief copied once (used slots only), then once per rollout.
         belief = st.belief.gathered((e_idx, g_idx), j * per_edge, torch.float32, repeats=a)
-        query = st.query[er].float()
+        query = rep(st.query[e_idx].float())
         feats, enc = rep(rows.get("node_features")).clone(), rep(rows.get("node_encoding"))
         cur, since = rep(rows.get("current_node")), st.since_sample[er, ar]
         pool = st.team_budget[er]

@@ -129,25 +129,17 @@ class GPBelief:
         :meth:`grown` give, at a fraction of the copying. Only the used slots are copied
         (capacity = max count + extra) and each belief once before the repeat; :meth:`add`
         reads the used prefix only, so its results are the same bits as on the full copy."""
-        dtype = dtype or self.factor_inv.dtype
         count = self.count[index]
         h = int(count.max()) if count.numel() else 0
-
-        def take(x: torch.Tensor, widths: tuple[int, ...] = ()) -> torch.Tensor:
-            x = x[index].to(dtype)
-            x = torch.nn.functional.pad(x, widths) if widths else x
-            return x.repeat_interleave(repeats, 0) if repeats > 1 else x
-
-        inv = take(self.factor_inv[..., :h, :h], (0, extra, 0, extra))
-        idx = torch.arange(h, h + extra, device=inv.device)
-        inv[..., idx, idx] = 1.0
-        return GPBelief(
-            points=take(self.points[..., :h, :], (0, 0, 0, extra)), factor_inv=inv,
-            cross=take(self.cross[..., :h, :], (0, 0, 0, extra)),
-            whitened=take(self.whitened[..., :h, :], (0, 0, 0, extra)),
-            mu=take(self.mu), sigma2=take(self.sigma2),
-            count=count.repeat_interleave(repeats, 0), batch_size=[count.numel() * repeats],
-        )
+        used = GPBelief(
+            points=self.points[..., :h, :][index], factor_inv=self.factor_inv[..., :h, :h][index],
+            cross=self.cross[..., :h, :][index], whitened=self.whitened[..., :h, :][index],
+            mu=self.mu[index], sigma2=self.sigma2[index], count=count,
+            batch_size=[count.numel()],
+        ).grown(extra, dtype)
+        if repeats == 1:
+            return used
+        return used[torch.arange(count.numel(), device=count.device).repeat_interleave(repeats)]
 
     # ------------------------------------------------------------------ updates
     def add(
