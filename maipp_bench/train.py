@@ -174,21 +174,28 @@ def collected_decisions(learner: Learner, batch: TensorDict, algo: Any) -> Tenso
 def learn(learner: Learner, optim: torch.optim.Optimizer, buffer: ReplayBuffer,
           rows: TensorDict, algo: Any) -> dict[str, list[float]]:
     """``epochs`` passes of minibatches of ``rows`` through the loss; the loss terms and
-    diagnostics of every minibatch."""
+    diagnostics of every minibatch, and ``minibatches``: how many were stepped (fewer than
+    all when ``algo.target_kl`` ended the update early)."""
     learner.core.train()
     buffer.empty()
     buffer.extend(rows)
     stats: dict[str, list[float]] = {}
+    steps = 0
     for _ in range(algo.epochs):
         for minibatch in buffer:
             out = learner.loss(minibatch)
+            if algo.target_kl > 0 and float(out["kl_approx"]) > 1.5 * algo.target_kl:
+                stats["minibatches"] = [float(steps)]
+                return stats  # the policy moved far enough from the one that collected
             total = sum(v for k, v in out.items() if k.startswith("loss_"))
             optim.zero_grad()
             total.backward()
             torch.nn.utils.clip_grad_norm_(learner.parameters(), algo.grad_clip)
             optim.step()
+            steps += 1
             for k, v in out.items():
                 stats.setdefault(k, []).append(float(v.detach().mean()))
+    stats["minibatches"] = [float(steps)]
     return stats
 
 

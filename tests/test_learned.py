@@ -216,6 +216,19 @@ def test_other_algos_train(algo, tmp_path):
     assert np.isfinite(row["loss_objective"]) and np.isfinite(row["loss_critic"])
 
 
+def test_target_kl_ends_an_update_early(tmp_path):
+    from maipp_bench.train import train
+
+    def first_update(*extra: str) -> dict:
+        path = train(compose_train(*TINY_TRAIN, "total_updates=1", *extra), tmp_path / extra[0])
+        return torch.load(path, weights_only=False)["curve"][0]
+
+    full = first_update("algo.target_kl=0")  # off: every minibatch of every epoch
+    capped = first_update("algo.target_kl=1e-9")  # any move of the policy ends the update
+    assert full["minibatches"] >= 2 * 2  # 2 epochs of at least 2 minibatches (tiny config)
+    assert capped["minibatches"] < full["minibatches"]
+
+
 @pytest.mark.parametrize("backend, pattern", [
     ("csv", "logs/ours/scalars/loss_critic.csv"),
     ("tensorboard", "logs/ours/events.out.tfevents.*"),

@@ -57,6 +57,9 @@ class AlgoConfig:
     lr_decay_every: int = 32
     minibatch: int = 256  # paper
     epochs: int = 8  # paper
+    # > 0: end an update's epochs at the first minibatch whose approximate KL to the
+    # collecting policy exceeds 1.5 x this (as Stable-Baselines3); 0: never (paper)
+    target_kl: float = 0.0
     clip_epsilon: float = 0.2  # ref
     critic_coef: float = 0.5  # ref: loss = policy + 0.5 value
     entropy_coef: float = 0.0  # ref: no entropy bonus
