@@ -35,9 +35,9 @@ def test_risk_unaware_methods_get_the_pruned_roadmap_unless_their_yaml_says_othe
     cfg = MAIPPConfig(**SMALL)
     pruned = {name: task_config(algos.get_method(name), cfg).prune_risky_nodes
               for name in ("greedy", "catnipp_greedy", "ours_greedy",
-                           "catnipp_greedy_full_roadmap")}
+                           "catnipp_greedy_full_roadmap", "catnipp_ti_full_roadmap")}
     assert pruned == {"greedy": True, "catnipp_greedy": True, "ours_greedy": False,
-                      "catnipp_greedy_full_roadmap": False}
+                      "catnipp_greedy_full_roadmap": False, "catnipp_ti_full_roadmap": False}
     assert not task_config(algos.get_method("greedy"), cfg.replace(risk_enabled=False)) \
         .prune_risky_nodes
     assert (algos.get_method("catnipp_greedy").fingerprint()
