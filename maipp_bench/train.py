@@ -181,20 +181,18 @@ def learn(learner: Learner, optim: torch.optim.Optimizer, buffer: ReplayBuffer,
     buffer.extend(rows)
     stats: dict[str, list[float]] = {}
     steps = 0
-    for _ in range(algo.epochs):
-        for minibatch in buffer:
-            out = learner.loss(minibatch)
-            if algo.target_kl > 0 and float(out["kl_approx"]) > 1.5 * algo.target_kl:
-                stats["minibatches"] = [float(steps)]
-                return stats  # the policy moved far enough from the one that collected
-            total = sum(v for k, v in out.items() if k.startswith("loss_"))
-            optim.zero_grad()
-            total.backward()
-            torch.nn.utils.clip_grad_norm_(learner.parameters(), algo.grad_clip)
-            optim.step()
-            steps += 1
-            for k, v in out.items():
-                stats.setdefault(k, []).append(float(v.detach().mean()))
+    for minibatch in (mb for _ in range(algo.epochs) for mb in buffer):
+        out = learner.loss(minibatch)
+        if algo.target_kl > 0 and float(out["kl_approx"]) > 1.5 * algo.target_kl:
+            break  # the policy moved far enough from the one that collected
+        total = sum(v for k, v in out.items() if k.startswith("loss_"))
+        optim.zero_grad()
+        total.backward()
+        torch.nn.utils.clip_grad_norm_(learner.parameters(), algo.grad_clip)
+        optim.step()
+        steps += 1
+        for k, v in out.items():
+            stats.setdefault(k, []).append(float(v.detach().mean()))
     stats["minibatches"] = [float(steps)]
     return stats
 

@@ -224,7 +224,7 @@ def test_target_kl_ends_an_update_early(tmp_path):
         return torch.load(path, weights_only=False)["curve"][0]
 
     full = first_update("algo.target_kl=0")  # off: every minibatch of every epoch
-    capped = first_update("algo.target_kl=1e-9")  # any move of the policy ends the update
+    capped = first_update("algo.target_kl=1e-9")  # any KL above rounding ends it
     assert full["minibatches"] >= 2 * 2  # 2 epochs of at least 2 minibatches (tiny config)
     assert capped["minibatches"] < full["minibatches"]
 
