@@ -2,7 +2,8 @@
 
 Reads a run folder's ``curve.jsonl`` or a shipped checkpoint's JSON card and plots, against
 env frames, the final Tr(P) of the training episodes, the held-out greedy evaluation's
-Tr(P) and the mean reward per decision.
+Tr(P) and the mean reward per decision. A card's selected update (the weights shipped) is
+marked by a dashed line.
 """
 
 from __future__ import annotations
@@ -29,8 +30,20 @@ def read_curve(source: str | Path) -> list[dict[str, Any]]:
     return json.loads(path.read_text())["curve"]
 
 
-def plot_curves(sources: dict[str, list[dict[str, Any]]], out: str | Path) -> Path:
-    """One figure, three panels, one line per named curve; written to ``out`` (PNG)."""
+def selected_frames(source: str | Path) -> int | None:
+    """Env frames at the update a checkpoint card shipped (None for a run folder)."""
+    path = Path(source)
+    if path.is_dir() or path.suffix != ".json":
+        return None
+    card = json.loads(path.read_text())
+    at = [r["frames"] for r in card["curve"] if r["update"] == card.get("selected_update")]
+    return at[0] if at else None
+
+
+def plot_curves(sources: dict[str, list[dict[str, Any]]], out: str | Path,
+                selected: dict[str, int] | None = None) -> Path:
+    """One figure, three panels, one line per named curve, a dashed line at each curve's
+    ``selected`` frames; written to ``out`` (PNG)."""
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.6), constrained_layout=True)
     panels = [("trace_final", "Tr(P_f), training episodes"),
               ("eval/trace", "Tr(P_f), held-out greedy eval"),
@@ -39,7 +52,10 @@ def plot_curves(sources: dict[str, list[dict[str, Any]]], out: str | Path) -> Pa
         for name, rows in sources.items():
             pts = [(r["frames"], r[key]) for r in rows if key in r and r[key] == r[key]]
             if pts:
-                ax.plot(*zip(*pts), marker="." if len(pts) < 40 else None, label=name)
+                line, = ax.plot(*zip(*pts), marker="." if len(pts) < 40 else None, label=name)
+                if selected and name in selected:
+                    ax.axvline(selected[name], color=line.get_color(), ls="--", lw=1,
+                               label=f"{name}: shipped update")
         ax.set_title(title)
         ax.set_xlabel("env frames")
         # Thousands as "20k": full numbers run into each other on narrow panels.
@@ -59,11 +75,14 @@ def main(argv: list[str] | None = None) -> None:
                    "to name a line)")
     p.add_argument("--out", required=True)
     args = p.parse_args(argv)
-    curves = {}
+    curves, selected = {}, {}
     for src in args.sources:
         name, sep, path = src.partition("=")
-        curves[name if sep else Path(src).stem] = read_curve(path if sep else src)
-    print(f"wrote {plot_curves(curves, args.out)}")
+        name, path = (name, path) if sep else (Path(src).stem, src)
+        curves[name] = read_curve(path)
+        if (frames := selected_frames(path)) is not None:
+            selected[name] = frames
+    print(f"wrote {plot_curves(curves, args.out, selected)}")
 
 
 if __name__ == "__main__":

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -193,6 +194,18 @@ def test_training_curve_plot(tiny_checkpoint, tmp_path):
     out = tmp_path / "c.png"
     main([f"tiny={tiny_checkpoint.parent}", "--out", str(out)])
     assert out.stat().st_size > 5000
+
+
+def test_training_curve_marks_the_shipped_update(tmp_path):
+    from maipp_bench.curves import main, selected_frames
+
+    card = tmp_path / "card.json"
+    curve = [{"update": u, "frames": 100 * u, "trace_final": 1.0 / u} for u in (1, 2, 3)]
+    card.write_text(json.dumps({"curve": curve, "selected_update": 2}))
+    assert selected_frames(card) == 200
+    assert selected_frames(tmp_path) is None  # a run folder ships nothing
+    main([f"x={card}", "--out", str(tmp_path / "c.png")])
+    assert (tmp_path / "c.png").stat().st_size > 5000
 
 
 def test_algo_configs_compose_as_documented():
