@@ -6,8 +6,10 @@ docs/results.md ("Fine-tuning", "Traps against catnipp_ti").
   the same episodes, at ``--budgets``; with ``--heldout-method ours_ti``, that method run
   with each checkpoint instead (model selection for the method the leaderboard ranks),
   with paired differences to the first checkpoint.
-* ``--subset DIR --method M``: a quick-subset run (``eval --episodes N --out DIR``) paired
-  episode by episode with the full rows of ``--against`` methods in ``--results``: mean
+* ``--subset DIR --method M``: rows kept apart from ``--results`` (a quick subset,
+  ``eval --episodes N --out D`` then ``D/subset-N``; or a full run of another checkpoint,
+  ``eval --checkpoint M=PATH --out DIR``) paired episode by episode with the full rows of
+  ``--against`` methods in ``--results``: mean
   Tr(P_f), traps, and the mean paired difference to the first ``--against`` method with
   its standard error.
 
@@ -26,46 +28,39 @@ import argparse
 import json
 import statistics as st
 from pathlib import Path
-from types import SimpleNamespace
 
 import torch
 
 
+def _mean_se(values: list[float]) -> tuple[float, float]:
+    """Mean and its standard error (nan for a single value)."""
+    se = st.stdev(values) / len(values) ** 0.5 if len(values) > 1 else float("nan")
+    return st.mean(values), se
+
+
 def heldout(paths: list[str], episodes: int, budgets: list[float], method: str | None) -> None:
-    """Each checkpoint on the same held-out episodes per budget: training's model-selection
-    score (greedy) when ``method`` is None, else that registered method (e.g. ``ours_ti``)
-    run with each checkpoint; paired differences to the first checkpoint."""
+    """Each checkpoint on the same held-out episodes per budget, played by ``method`` (None:
+    training's model selection, greedy decoding); paired differences to the first one."""
     from maipp_bench.algos.checkpoint import load_core
     from maipp_bench.algos.registry import get_method
     from maipp_bench.envs.config import MAIPPConfig
-    from maipp_bench.protocol.runner import run_chunk
-    from maipp_bench.train import HELDOUT_SEED_BASE, evaluate
+    from maipp_bench.train import greedy_method, heldout_rows
 
-    seeds = [HELDOUT_SEED_BASE + i for i in range(episodes)]
+    spec = get_method(method) if method else greedy_method("heldout")
+    nets = {path: load_core(path) for path in paths}
     for budget in budgets:
-        print(f"budget {budget}: {episodes} held-out episodes, "
-              + ("greedy (training's model selection)" if method is None else method))
+        print(f"budget {budget}: {episodes} held-out episodes, {spec.name}")
         first: list[float] | None = None
-        for path in paths:
-            core, payload = load_core(path)
-            env_cfg = MAIPPConfig.from_dict(payload["env"])
-            if method is None:
-                cfg = SimpleNamespace(eval_episodes=episodes, eval_budget=budget,
-                                      algo=SimpleNamespace(name="heldout"))
-                score = evaluate(SimpleNamespace(core=core), env_cfg, cfg)
-                print(f"  {path} (update {payload.get('update')}): "
-                      + ", ".join(f"{k} {v:.2f}" for k, v in score.items()))
-                continue
-            eval_cfg = env_cfg.replace(budget=budget, budget_min=0.0, node_encoding_dim=0)
-            rows = run_chunk(get_method(method), eval_cfg, seeds, trial_seed=HELDOUT_SEED_BASE,
-                             core=core)
+        for path, (core, payload) in nets.items():
+            rows = heldout_rows(core, MAIPPConfig.from_dict(payload["env"]), episodes, budget,
+                                spec)
             trace = [r["trace"] for r in rows]
             first = first or trace
-            diff = [t - f for t, f in zip(trace, first)]
-            se = st.stdev(diff) / len(diff) ** 0.5 if len(diff) > 1 else float("nan")
+            diff, se = _mean_se([t - f for t, f in zip(trace, first)])
             print(f"  {path} (update {payload.get('update')}): Tr(P_f) {st.mean(trace):7.2f}"
+                  f"  rmse {st.mean(r['rmse'] for r in rows):.3f}"
                   f"  traps {st.mean(r['traps'] for r in rows):.2f}"
-                  f"  minus first {st.mean(diff):+6.2f} ± {se:.2f}", flush=True)
+                  f"  minus first {diff:+6.2f} ± {se:.2f}", flush=True)
 
 
 def _rows(path: Path) -> dict[tuple, dict]:
@@ -73,18 +68,18 @@ def _rows(path: Path) -> dict[tuple, dict]:
 
 
 def paired(subset: Path, suite: str, method: str, results: Path, against: list[str]) -> None:
-    runs = {f"{method} (subset)": _rows(subset / suite / f"{method}.jsonl")}
+    runs = {f"{method} ({subset.name})": _rows(subset / suite / f"{method}.jsonl")}
     runs |= {f"{m} (full)": _rows(results / suite / f"{m}.jsonl") for m in against}
     ref = runs[f"{against[0]} (full)"]
-    for setting in sorted({k[0] for k in runs[f"{method} (subset)"]}):
-        keys = [k for k in runs[f"{method} (subset)"] if k[0] == setting]
+    mine = next(iter(runs.values()))
+    for setting in sorted({k[0] for k in mine}):
+        keys = [k for k in mine if k[0] == setting]
         print(f"{setting}: {len(keys)} episodes")
         for name, rows in runs.items():
-            diff = [rows[k]["trace"] - ref[k]["trace"] for k in keys]
-            se = st.stdev(diff) / len(diff) ** 0.5
+            diff, se = _mean_se([rows[k]["trace"] - ref[k]["trace"] for k in keys])
             print(f"  {name:32s} Tr(P_f) {st.mean(rows[k]['trace'] for k in keys):7.1f}"
                   f"  traps {st.mean(rows[k]['traps'] for k in keys):.2f}"
-                  f"  minus {against[0]} {st.mean(diff):+6.2f} ± {se:.2f}")
+                  f"  minus {against[0]} {diff:+6.2f} ± {se:.2f}")
 
 
 def main() -> None:
@@ -96,7 +91,8 @@ def main() -> None:
     p.add_argument("--heldout-method", metavar="METHOD",
                    help="--heldout: run this registered method (e.g. ours_ti) with each "
                         "checkpoint instead of training's greedy score")
-    p.add_argument("--subset", type=Path, help="an eval --out folder's subset-N folder")
+    p.add_argument("--subset", type=Path,
+                   help="rows kept apart: an eval --out folder (or its subset-N folder)")
     p.add_argument("--suite", default="risk_aware")
     p.add_argument("--method")
     p.add_argument("--results", type=Path, default=Path("results"))

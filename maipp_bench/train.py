@@ -197,13 +197,25 @@ def learn(learner: Learner, optim: torch.optim.Optimizer, buffer: ReplayBuffer,
     return stats
 
 
+def greedy_method(name: str) -> MethodSpec:
+    """Greedy decoding of an in-memory network: training's model-selection method."""
+    return MethodSpec(name=f"{name}_greedy", policy="attention", models_risk=True,
+                      params={"mode": "greedy"}, learned=True)
+
+
+def heldout_rows(core: Any, env_cfg: MAIPPConfig, episodes: int, budget: float,
+                 method: MethodSpec) -> list[dict[str, Any]]:
+    """``method`` with the network ``core`` on the first ``episodes`` held-out seeds (never
+    the protocol's) at a fixed ``budget``: one result row per episode."""
+    seeds = [HELDOUT_SEED_BASE + i for i in range(episodes)]
+    eval_cfg = env_cfg.replace(budget=budget, budget_min=0.0, node_encoding_dim=0)
+    return run_chunk(method, eval_cfg, seeds, trial_seed=HELDOUT_SEED_BASE, core=core)
+
+
 def evaluate(learner: Learner, env_cfg: MAIPPConfig, cfg: Any) -> dict[str, float]:
     """Greedy episodes on held-out seeds at ``eval_budget`` (never the protocol's seeds)."""
-    seeds = [HELDOUT_SEED_BASE + i for i in range(cfg.eval_episodes)]
-    eval_cfg = env_cfg.replace(budget=cfg.eval_budget, budget_min=0.0, node_encoding_dim=0)
-    method = MethodSpec(name=f"{cfg.algo.name}_greedy", policy="attention", models_risk=True,
-                        params={"mode": "greedy"}, learned=True)
-    rows = run_chunk(method, eval_cfg, seeds, trial_seed=HELDOUT_SEED_BASE, core=learner.core)
+    rows = heldout_rows(learner.core, env_cfg, cfg.eval_episodes, cfg.eval_budget,
+                        greedy_method(cfg.algo.name))
     n = len(rows)
     return {f"eval/{k}": sum(r[k] for r in rows) / n for k in ("trace", "rmse", "traps")}
 
