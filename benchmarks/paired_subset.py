@@ -1,5 +1,5 @@
-"""Compare a checkpoint with the shipped one before shipping it: the figures of
-docs/results.md ("Fine-tuning", "Traps against catnipp_ti").
+"""Paired comparisons of checkpoints and methods: the paired differences of
+docs/results.md (the suite tables and "How `ours.pt` was chosen").
 
 * ``--heldout CKPT ...``: training's model-selection score (greedy episodes on held-out
   seeds, never the protocol's; ``maipp_bench.train.evaluate``) for each checkpoint, on
@@ -14,10 +14,10 @@ docs/results.md ("Fine-tuning", "Traps against catnipp_ti").
   its standard error.
 
 Usage:
-    python benchmarks/paired_subset.py --heldout maipp_bench/checkpoints/ours.pt \\
-        maipp_bench/checkpoints/ours_v2ft.pt
-    python benchmarks/paired_subset.py --heldout maipp_bench/checkpoints/ours.pt \\
-        maipp_bench/checkpoints/ours_v2ft.pt --heldout-method ours_ti --budgets 2 3 4 5
+    python benchmarks/paired_subset.py --heldout maipp_bench/checkpoints/ours_v1.pt \\
+        maipp_bench/checkpoints/ours.pt
+    python benchmarks/paired_subset.py --heldout maipp_bench/checkpoints/ours_v1.pt \\
+        maipp_bench/checkpoints/ours.pt --heldout-method ours_ti --budgets 2 3 4 5
     python benchmarks/paired_subset.py --subset out/subset-60 --method ours_ti \\
         --against ours_ti catnipp_ti sga_rrt_0.3_0.4 oracle
 """
