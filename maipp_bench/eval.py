@@ -10,6 +10,7 @@ stored episodes.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shlex
 import sys
@@ -206,10 +207,30 @@ def main(argv: list[str] | None = None) -> dict:
                               subset, commit)
     board["checkpoints"] = checkpoints
     board["method_sha256"] = fingerprints
+    committed_path = Path(args.leaderboards) / f"{suite.name}.json"
+    committed = json.loads(committed_path.read_text()) if committed_path.exists() else None
     target = Path(args.leaderboards) if subset is None else out_root / "leaderboards"
     paths = leaderboard.write(board, target)
     print(f"wrote {', '.join(str(p) for p in paths)}")
+    if committed is not None:
+        _report_reproduction(board, committed, committed_path)
     return board
+
+
+def _report_reproduction(board: dict, committed: dict, path: Path) -> None:
+    """Say whether this run's rows recompute the board that was there before it (the
+    committed one, for a subset or a first full run on a fresh clone)."""
+    checks = leaderboard.reproduces(board, committed)
+    counts: dict[str, int] = {}
+    for _, _, verdict in checks:
+        counts[verdict] = counts.get(verdict, 0) + 1
+    what = ("every episode" if board["subset"] is None
+            else "the first trial's episodes it ran")
+    print(f"against {path} (as it was before this run; {what}): "
+          + ", ".join(f"{n} rows {v}" for v, n in counts.items()))
+    for method, setting, verdict in checks:
+        if verdict == "differs":
+            print(f"  differs: {method} {setting}", file=sys.stderr)
 
 
 if __name__ == "__main__":

@@ -147,6 +147,32 @@ def test_killed_eval_resumes_to_the_same_file(smoke_board, tmp_path):
     assert _rows_without_timing(resumed) == _rows_without_timing(board)
 
 
+def test_a_run_says_whether_it_reproduces_the_board_it_finds(smoke_board, tmp_path, capsys):
+    board, tmp = smoke_board
+    shutil.copytree(tmp / "lb", tmp_path / "lb")  # the "committed" board
+    sub = _run(tmp_path, "--episodes", "2")
+    checks = leaderboard.reproduces(sub, board)
+    assert len(checks) == len(sub["rows"]) > 0
+    assert {v for *_, v in checks} == {"identical"}
+    assert f"{len(checks)} rows identical" in capsys.readouterr().out
+    assert {v for *_, v in leaderboard.reproduces(board, board)} == {"identical"}
+
+    method, setting = checks[0][:2]
+    changed = json.loads(json.dumps(board))
+    row = next(r for r in changed["rows"] if (r["method"], r["setting"]) == (method, setting))
+    row["spot_check"]["trace"][0] *= 1 + 1e-6  # a changed decision moves Tr(P) by far more
+    verdicts = {k[:2]: k[2] for k in leaderboard.reproduces(sub, changed)}
+    assert verdicts.pop((method, setting)) == "differs"
+    assert set(verdicts.values()) == {"identical"}
+    original = next(r for r in board["rows"] if (r["method"], r["setting"]) == (method, setting))
+    row["spot_check"]["trace"][0] = original["spot_check"]["trace"][0] * (1 + 1e-12)
+    assert dict((k[:2], k[2]) for k in leaderboard.reproduces(sub, changed))[
+        (method, setting)] == "within 1e-09"  # last bits another CPU may round differently
+    changed["method_sha256"][method] = "another algorithm version"
+    verdicts = {k[:2]: k[2] for k in leaderboard.reproduces(sub, changed)}
+    assert verdicts[(method, setting)] == "not comparable"
+
+
 def test_episode_subset_is_marked_and_kept_apart(tmp_path):
     board = _run(tmp_path, "--episodes", "2", "--methods", "random", "--budgets", "1.0")
     assert board["subset"] == {"episodes_per_setting": 2}

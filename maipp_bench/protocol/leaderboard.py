@@ -90,6 +90,48 @@ def row_checks(suite: Suite, eps: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
+def reproduces(board: dict[str, Any], committed: dict[str, Any], rel: float = 1e-9
+               ) -> list[tuple[str, str, str]]:
+    """Check the rows of a fresh run (``board``, full or subset) against a committed board
+    of the same suite: ``(method, setting, verdict)`` per row of ``board``.
+
+    Rows are comparable when both ran the same method fingerprint and checkpoint. Then the
+    first trial's Tr(P_f) of every instance the run has must equal the committed
+    ``spot_check`` (to ``rel``: another CPU may round the last bits differently), and a
+    full row's ``episodes_sha256`` the committed one. Verdicts: ``"identical"`` (every
+    checked value bit for bit), ``"within <rel>"``, ``"differs"``, ``"not comparable"``,
+    and for a full row whose hash differs, ``"first trial ..., other episodes not
+    bit-identical"``.
+    """
+    def ident(b: dict[str, Any], method: str) -> tuple:
+        return (b.get("method_sha256", {}).get(method),
+                b.get("checkpoints", {}).get(method, {}).get("sha256"))
+
+    ref = {(r["method"], r["setting"]): r for r in committed["rows"]}
+    out = []
+    for row in board["rows"]:
+        key = (row["method"], row["setting"])
+        old = ref.get(key)
+        if old is None or ident(board, row["method"]) != ident(committed, row["method"]):
+            out.append((*key, "not comparable"))
+            continue
+        mine = dict(zip(row["spot_check"]["instances"], row["spot_check"]["trace"]))
+        theirs = dict(zip(old["spot_check"]["instances"], old["spot_check"]["trace"]))
+        pairs = [(v, theirs[i]) for i, v in mine.items() if i in theirs]
+        full = board["subset"] is None and committed["subset"] is None
+        if not pairs:
+            verdict = "not comparable"
+        elif not all(math.isclose(a, b, rel_tol=rel, abs_tol=rel) for a, b in pairs):
+            verdict = "differs"
+        else:
+            verdict = "identical" if all(a == b for a, b in pairs) else f"within {rel:g}"
+            if full and row["episodes_sha256"] != old["episodes_sha256"]:
+                # Only the first trial is stored per episode: the rest is known by hash.
+                verdict = f"first trial {verdict}, other episodes not bit-identical"
+        out.append((*key, verdict))
+    return out
+
+
 def _paper_lookup(suite: Suite) -> dict[tuple, tuple[float, float]]:
     if not suite.paper_table:
         return {}
