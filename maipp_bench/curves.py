@@ -1,9 +1,9 @@
 """Training curves: ``python -m maipp_bench.curves RUN_OR_CARD... --out curves.png``.
 
 Reads a run folder's ``curve.jsonl`` or a shipped checkpoint's JSON card and plots, against
-env frames, the final Tr(P) of the training episodes, the held-out greedy evaluation's
-Tr(P) and the mean reward per decision. A card's selected update (the weights shipped) is
-marked by a dashed line.
+env frames, the final Tr(P) of the training episodes, the held-out evaluation's Tr(P)
+(greedy decoding unless the run's ``eval_method`` says otherwise) and the mean reward per
+decision. A card's selected update (the weights shipped) is marked by a dashed line.
 """
 
 from __future__ import annotations
@@ -45,8 +45,11 @@ def plot_curves(sources: dict[str, list[dict[str, Any]]], out: str | Path,
     """One figure, three panels, one line per named curve, a dashed line at each curve's
     ``selected`` frames; written to ``out`` (PNG)."""
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.6), constrained_layout=True)
+    # Rows before eval tags were greedy decoding; name what the held-out panel shows.
+    tags = sorted({r.get("eval/tag", "greedy") for rows in sources.values() for r in rows
+                   if "eval/trace" in r})
     panels = [("trace_final", "Tr(P_f), training episodes"),
-              ("eval/trace", "Tr(P_f), held-out greedy eval"),
+              ("eval/trace", "Tr(P_f), held-out " + (" / ".join(tags) or "greedy") + " eval"),
               ("reward_per_decision", "reward per decision")]
     for ax, (key, title) in zip(axes, panels):
         for name, rows in sources.items():

@@ -42,7 +42,7 @@ from maipp_bench.algos.checkpoint import FORMAT, atomic_save, export_policy
 from maipp_bench.algos.decisions import decision_batch
 from maipp_bench.algos.modules import HIDDEN_KEY, TeamPolicy, decision_rows
 from maipp_bench.algos.ppo import AlgoConfig, Learner, build_learner
-from maipp_bench.algos.registry import MethodSpec
+from maipp_bench.algos.registry import MethodSpec, get_method
 from maipp_bench.envs import rng
 from maipp_bench.envs.config import MAIPPConfig
 from maipp_bench.envs.maipp_env import MAIPPEnv
@@ -83,9 +83,15 @@ class TrainConfig:
     total_updates: int = 200
     max_minutes: float = 0.0  # > 0: stop (after a checkpoint) once this much wall time is used
     checkpoint_every: int = 5
-    eval_every: int = 10  # greedy evaluation on held-out seeds (0: never)
+    eval_every: int = 10  # evaluation on held-out seeds (0: never); it selects best.pt
     eval_episodes: int = 16
     eval_budget: float = 3.0
+    # What the held-out evaluation runs: "greedy" (the network's argmax, cheap) or a
+    # registered learned method with this network, e.g. "ours_ti" (what the leaderboard
+    # ranks); at eval_budgets if given (score: geometric mean of Tr(P_f) over them, so
+    # every budget counts by its relative change), else at eval_budget.
+    eval_method: str = "greedy"
+    eval_budgets: list[float] = field(default_factory=list)
     resume: str | None = None
     export: str | None = None  # at the end: write the policy file + JSON card here
     export_from: str = "best"  # best (lowest held-out eval Tr(P); else last) | last
@@ -212,12 +218,44 @@ def heldout_rows(core: Any, env_cfg: MAIPPConfig, episodes: int, budget: float,
     return run_chunk(method, eval_cfg, seeds, trial_seed=HELDOUT_SEED_BASE, core=core)
 
 
-def evaluate(learner: Learner, env_cfg: MAIPPConfig, cfg: Any) -> dict[str, float]:
-    """Greedy episodes on held-out seeds at ``eval_budget`` (never the protocol's seeds)."""
-    rows = heldout_rows(learner.core, env_cfg, cfg.eval_episodes, cfg.eval_budget,
-                        greedy_method(cfg.algo.name))
-    n = len(rows)
-    return {f"eval/{k}": sum(r[k] for r in rows) / n for k in ("trace", "rmse", "traps")}
+def eval_spec(cfg: Any) -> tuple[MethodSpec, list[float]]:
+    """The held-out evaluation's method and budgets (clear errors for bad values)."""
+    budgets = [float(b) for b in (cfg.eval_budgets or [cfg.eval_budget])]
+    if any(not math.isfinite(b) or b <= 0 for b in budgets):
+        raise ValueError(f"eval_budgets={budgets}: budgets must be finite and > 0")
+    if cfg.eval_method == "greedy":
+        return greedy_method(cfg.algo.name), budgets
+    spec = get_method(cfg.eval_method)  # ValueError listing the registered methods
+    if not spec.learned or spec.policy != "attention":
+        raise ValueError(f"eval_method={cfg.eval_method!r}: 'greedy' or a method of the "
+                         "attention network (e.g. ours_ti, catnipp_ti)")
+    return spec, budgets
+
+
+def eval_tag(cfg: Any) -> str:
+    """What an ``eval/trace`` value measures: only values of one tag are compared."""
+    _, budgets = eval_spec(cfg)
+    return f"{cfg.eval_method}@{','.join(f'{b:g}' for b in budgets)}"
+
+
+def evaluate(learner: Learner, env_cfg: MAIPPConfig, cfg: Any) -> dict[str, Any]:
+    """``eval_method`` on held-out seeds (never the protocol's) at each evaluation budget.
+
+    ``eval/trace`` (the selection score) is the mean Tr(P_f) at one budget, the geometric
+    mean over budgets of it at several; ``eval/trace_B<b>`` each budget's mean."""
+    spec, budgets = eval_spec(cfg)
+    out: dict[str, Any] = {}
+    per_budget, rows = [], []
+    for budget in budgets:
+        chunk = heldout_rows(learner.core, env_cfg, cfg.eval_episodes, budget, spec)
+        per_budget.append(sum(r["trace"] for r in chunk) / len(chunk))
+        rows += chunk
+        if len(budgets) > 1:
+            out[f"eval/trace_B{budget:g}"] = per_budget[-1]
+    out["eval/trace"] = math.exp(sum(math.log(v) for v in per_budget) / len(per_budget))
+    out.update({f"eval/{k}": sum(r[k] for r in rows) / len(rows) for k in ("rmse", "traps")})
+    out["eval/tag"] = eval_tag(cfg)
+    return out
 
 
 def _command() -> str:
@@ -248,6 +286,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
     if env_cfg.node_encoding_dim < 1:
         raise ValueError("env.node_encoding_dim must be >= 1: the network reads the "
                          "roadmap's Laplacian encoding (paper: 32)")
+    eval_spec(cfg)  # a bad eval_method / eval_budgets fails now, not at the first evaluation
     # Disjoint from every protocol seed, so training never sees the leaderboard's episodes.
     protocol_seeds = {s for suite in load_protocol(1).suites.values()
                       for s in (*suite.instance_seeds, *suite.trial_seeds)}
@@ -269,7 +308,10 @@ def train(cfg: Any, run_dir: Path) -> Path:
         start, frames, episodes = state["update"], state["frames"], state["episodes"]
         wall, curve = state["wall_s"], state["curve"]
         if (Path(cfg.resume).parent / "best.pt").exists():  # else: best of what we hold
-            best = min([r["eval/trace"] for r in curve if "eval/trace" in r], default=math.inf)
+            # Only scores of this run's evaluation compare (rows before tags: greedy).
+            tag, old = eval_tag(cfg), f"greedy@{cfg.eval_budget:g}"
+            best = min([r["eval/trace"] for r in curve if "eval/trace" in r
+                        and r.get("eval/tag", old) == tag], default=math.inf)
         commands = state.get("commands", _hydra_command(Path(cfg.resume).parent)) + commands
         ckpt_path = Path(cfg.resume)
         run_dir = ckpt_path.parent
@@ -364,7 +406,7 @@ def write_card(cfg: Any, source: Path, last: Path, out: Path) -> None:
         "commit": _commit(),
         "updates": state["update"],
         "selected_update": chosen["update"],
-        "selected_by": "lowest held-out greedy Tr(P) (eval/trace)"
+        "selected_by": f"lowest held-out Tr(P) (eval/trace) of {eval_tag(cfg)}"
         if chosen["update"] != state["update"] or source != last else "last update",
         "frames": state["frames"],
         "wall_s": state["wall_s"],

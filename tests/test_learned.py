@@ -316,3 +316,40 @@ def test_best_held_out_checkpoint_is_exported(tmp_path):
     assert len(evals) == 3 and card["updates"] == 3
     assert card["selected_update"] == 1 + evals.index(min(evals))
     assert torch.load(out, weights_only=False)["update"] == card["selected_update"]
+
+
+def test_held_out_evaluation_can_run_the_ranked_method_at_several_budgets(tmp_path):
+    import json
+    import math
+
+    from maipp_bench.train import train
+
+    out = tmp_path / "shipped.pt"
+    train(compose_train(*TINY_TRAIN, "total_updates=2", "eval_every=1", "eval_episodes=2",
+                        "eval_method=ours_ti", "eval_budgets=[1.0,1.5]", f"export={out}"),
+          tmp_path / "run")
+    card = json.loads(out.with_suffix(".json").read_text())
+    for row in card["curve"]:
+        per_budget = [row["eval/trace_B1"], row["eval/trace_B1.5"]]
+        assert row["eval/trace"] == pytest.approx(math.sqrt(per_budget[0] * per_budget[1]))
+        assert row["eval/tag"] == "ours_ti@1,1.5"
+    assert "ours_ti@1,1.5" in card["selected_by"]
+    # Resuming under another evaluation restarts the selection: old scores never compete.
+    train(compose_train(*TINY_TRAIN, "total_updates=3", "eval_every=1", "eval_episodes=2",
+                        f"resume={tmp_path / 'run' / 'checkpoint.pt'}", f"export={out}"),
+          tmp_path / "run")
+    card = json.loads(out.with_suffix(".json").read_text())
+    assert card["selected_update"] == 3  # not an update scored by ours_ti
+    assert "greedy@" in card["selected_by"]
+
+
+@pytest.mark.parametrize("override,message", [
+    ("eval_method=random", "attention network"),
+    ("eval_method=nonexistent", "nonexistent"),
+    ("eval_budgets=[0.0]", "eval_budgets"),
+])
+def test_bad_held_out_evaluation_is_a_clear_error(override, message, tmp_path):
+    from maipp_bench.train import train
+
+    with pytest.raises(ValueError, match=message):
+        train(compose_train(*TINY_TRAIN, override), tmp_path / "run")
