@@ -267,6 +267,19 @@ def test_someone_decides_while_not_done():
         assert not torch.any(td[(*prefix, "agents", "deciding")][~not_done])
 
 
+def test_stepping_a_finished_env_changes_nothing_and_pays_nothing():
+    env = make_env(4, seed=6)
+    tds = run_to_end(env)  # envs that finish early keep being stepped
+    ended = [next(t for t, td in enumerate(tds) if td["done"][i]) for i in range(4)]
+    assert len(set(ended)) > 1
+    for i, t_end in enumerate(ended):
+        assert float(tds[t_end]["agents", "reward"][i].abs().sum()) > 0  # the terminal term
+        for td in tds[t_end + 1:]:
+            assert bool(td["done"][i])
+            assert not td["agents", "reward"][i].any()
+            assert torch.equal(td["metrics", "trace"][i], tds[t_end]["metrics", "trace"][i])
+
+
 def _find_masked_decider(env, seed):
     torch.manual_seed(seed)
     td = env.reset()

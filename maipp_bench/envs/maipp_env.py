@@ -347,6 +347,7 @@ class MAIPPEnv(EnvBase):
                 f"{st.mask[ex_e, ex_a].nonzero().squeeze(-1).tolist()}"
             )
         self._take_intents(st, tensordict, deciding)
+        live = deciding.any(-1)  # a finished env (nobody decides) earns nothing more
 
         penalty = torch.zeros(e, m, dtype=torch.float64, device=self.device)
         terminated = self._apply_moves(st, action, deciding, penalty)
@@ -361,7 +362,7 @@ class MAIPPEnv(EnvBase):
         # r = max(0, relative drop of Phi) - penalties, and -Phi_T / 900 at the end.
         gain = ((objective_before - st.objective) / objective_before.clamp_min(1e-12)).clamp_min(0)
         reward = gain.unsqueeze(-1) - penalty
-        reward = reward - (cfg.terminal_scale * st.objective * done).unsqueeze(-1)
+        reward = reward - (cfg.terminal_scale * st.objective * (done & live)).unsqueeze(-1)
         return self._observe(st, terminated, truncated, reward)
 
     def _take_intents(self, st: EpisodeState, td: TensorDictBase, deciding: torch.Tensor) -> None:
