@@ -135,3 +135,13 @@ def test_env_overrides_are_validated():
     assert env.config.budget == 1.5
     with pytest.raises(ValueError, match="budget"):
         MAIPPEnv(MAIPPConfig(n_nodes=30, k_neighbors=6), batch_size=[1], budget=-1.0)
+
+
+def test_numpy_scalars_are_accepted_as_python_numbers():
+    import numpy as np
+
+    cfg = MAIPPConfig(n_agents=np.int64(2), length_scale=np.float32(0.25), budget=3)
+    assert (cfg.n_agents, cfg.length_scale, cfg.budget) == (2, 0.25, 3.0)
+    assert type(cfg.n_agents) is int and type(cfg.length_scale) is type(cfg.budget) is float
+    with pytest.raises(ValueError, match="n_agents"):
+        MAIPPConfig(n_agents=np.float64(2.0))

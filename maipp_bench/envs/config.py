@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -159,14 +160,17 @@ class MAIPPConfig:
                 if not isinstance(value, bool):
                     _bad(f.name, value, "a bool")
             elif expected == "int":
-                if isinstance(value, bool) or not isinstance(value, int):
+                if isinstance(value, bool) or not isinstance(value, numbers.Integral):
                     _bad(f.name, value, "an int")
+                object.__setattr__(self, f.name, int(value))  # numpy ints become Python ints
             elif expected == "str":
                 if not isinstance(value, str):
                     _bad(f.name, value, "a str")
             elif expected == "float":
-                if isinstance(value, bool) or not isinstance(value, (int, float)):
+                if isinstance(value, bool) or not isinstance(value, numbers.Real):
                     _bad(f.name, value, "a number")
+                value = float(value)  # numpy and int values become Python floats
+                object.__setattr__(self, f.name, value)
                 if math.isnan(value):
                     _bad(f.name, value, "a number, not NaN")
         # Range checks: (field, predicate, what is allowed).
