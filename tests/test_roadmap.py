@@ -51,3 +51,10 @@ def test_pruned_nodes_get_no_edges_and_the_start_stays():
     # no slot of any node points at a removed node
     target_ok = keep.gather(1, rm.neighbors.flatten(1)).view_as(rm.neighbors)
     assert (target_ok | ~rm.neighbor_valid).all()
+    # ... and routing never passes through one: no edge touches a removed node
+    adj, apsp = rm.adjacency(), rm.shortest_paths()
+    off_diag = ~torch.eye(81, dtype=torch.bool)
+    gone = ~keep
+    for d in (adj, apsp):
+        assert torch.isinf(d[gone.unsqueeze(-1) & off_diag]).all()
+        assert torch.isinf(d.transpose(-1, -2)[gone.unsqueeze(-1) & off_diag]).all()

@@ -27,11 +27,13 @@ class Roadmap:
     neighbor_valid: torch.Tensor  # [E, N, k] bool: slot exists
 
     def adjacency(self) -> torch.Tensor:
-        """Symmetrised weighted adjacency ``[E, N, N]`` (inf where no edge)."""
+        """Symmetrised weighted adjacency ``[E, N, N]`` (inf where no edge; a pruned node
+        has none, though its own k-NN slots are kept)."""
         e, n, _ = self.neighbors.shape
         w = torch.full((e, n, n), torch.inf, dtype=self.neighbor_dist.dtype,
                        device=self.nodes.device)
-        dist = torch.where(self.neighbor_valid, self.neighbor_dist, torch.inf)
+        valid = self.neighbor_valid & self.node_valid.unsqueeze(-1)
+        dist = torch.where(valid, self.neighbor_dist, torch.inf)
         w.scatter_reduce_(-1, self.neighbors, dist, reduce="amin")
         w = torch.minimum(w, w.transpose(-1, -2))
         w.diagonal(dim1=-2, dim2=-1).zero_()
