@@ -872,3 +872,24 @@ def test_node_encoding_key():
 
     assert torch.equal(td["node_encoding"], laplacian_encoding(rm.neighbors, rm.neighbor_valid, 8))
     assert "node_encoding" not in make_env(2, n_nodes=30, k_neighbors=6).reset().keys()
+
+
+def test_masked_random_policy_drives_wrappers_and_collectors():
+    from torchrl.collectors import Collector
+    from torchrl.envs import SerialEnv
+
+    from maipp_bench.envs import MaskedRandomPolicy
+
+    cfg = MAIPPConfig(n_nodes=30, k_neighbors=6, budget=1.0)
+    env = SerialEnv(2, lambda: MAIPPEnv(cfg, batch_size=[2]))  # copies the spec: no mask
+    collector = Collector(env, MaskedRandomPolicy(torch.Generator().manual_seed(0)),
+                          frames_per_batch=60, total_frames=120)
+    done = 0
+    for batch in collector:
+        _assert_actions_allowed(batch.reshape(-1))
+        done += int(batch["next", "done"].sum())
+    collector.shutdown()
+    assert done > 0  # finished envs were reset and played on
+    with pytest.raises(ValueError, match="at least one allowed slot"):
+        MaskedRandomPolicy()(TensorDict({("agents", "action_mask"): torch.zeros(1, 2, 3,
+                                                                                dtype=bool)}))
