@@ -208,12 +208,19 @@ def main(argv: list[str] | None = None) -> dict:
     board["checkpoints"] = checkpoints
     board["method_sha256"] = fingerprints
     committed_path = Path(args.leaderboards) / f"{suite.name}.json"
-    committed = json.loads(committed_path.read_text()) if committed_path.exists() else None
+    try:
+        committed = json.loads(committed_path.read_text()) if committed_path.exists() else None
+    except (OSError, ValueError) as err:  # the new board is written all the same
+        print(f"note: {committed_path} unreadable ({err}); not compared", file=sys.stderr)
+        committed = None
     target = Path(args.leaderboards) if subset is None else out_root / "leaderboards"
     paths = leaderboard.write(board, target)
     print(f"wrote {', '.join(str(p) for p in paths)}")
     if committed is not None:
-        _report_reproduction(board, committed, committed_path)
+        try:
+            _report_reproduction(board, committed, committed_path)
+        except (KeyError, TypeError) as err:  # a board of an older format
+            print(f"note: {committed_path} not compared (missing {err})", file=sys.stderr)
     return board
 
 
@@ -224,7 +231,7 @@ def _report_reproduction(board: dict, committed: dict, path: Path) -> None:
     counts: dict[str, int] = {}
     for _, _, verdict in checks:
         counts[verdict] = counts.get(verdict, 0) + 1
-    what = ("every episode" if board["subset"] is None
+    what = ("every episode" if board["subset"] is None and committed["subset"] is None
             else "the first trial's episodes it ran")
     print(f"against {path} (as it was before this run; {what}): "
           + ", ".join(f"{n} rows {v}" for v, n in counts.items()))

@@ -220,15 +220,17 @@ def heldout_rows(core: Any, env_cfg: MAIPPConfig, episodes: int, budget: float,
 
 def eval_spec(cfg: Any) -> tuple[MethodSpec, list[float]]:
     """The held-out evaluation's method and budgets (clear errors for bad values)."""
-    budgets = [float(b) for b in (cfg.eval_budgets or [cfg.eval_budget])]
+    budgets = sorted({float(b) for b in (cfg.eval_budgets or [cfg.eval_budget])})
     if any(not math.isfinite(b) or b <= 0 for b in budgets):
         raise ValueError(f"eval_budgets={budgets}: budgets must be finite and > 0")
     if cfg.eval_method == "greedy":
         return greedy_method(cfg.algo.name), budgets
     spec = get_method(cfg.eval_method)  # ValueError listing the registered methods
-    if not spec.learned or spec.policy != "attention":
+    # The method must play this network as the leaderboard does (same features, roadmap).
+    if not (spec.learned and spec.policy == "attention"
+            and cfg.eval_method.startswith(f"{cfg.algo.name}_")):
         raise ValueError(f"eval_method={cfg.eval_method!r}: 'greedy' or a method of the "
-                         "attention network (e.g. ours_ti, catnipp_ti)")
+                         f"{cfg.algo.name!r} network (e.g. {cfg.algo.name}_ti)")
     return spec, budgets
 
 
@@ -236,6 +238,13 @@ def eval_tag(cfg: Any) -> str:
     """What an ``eval/trace`` value measures: only values of one tag are compared."""
     _, budgets = eval_spec(cfg)
     return f"{cfg.eval_method}@{','.join(f'{b:g}' for b in budgets)}"
+
+
+def row_tag(row: dict[str, Any], state: dict[str, Any]) -> str:
+    """A curve row's eval tag; rows written before tags existed were greedy decoding at
+    the ``eval_budget`` of the run that wrote them."""
+    budget = state.get("config", {}).get("eval_budget", 3.0)
+    return row.get("eval/tag", f"greedy@{float(budget):g}")
 
 
 def evaluate(learner: Learner, env_cfg: MAIPPConfig, cfg: Any) -> dict[str, Any]:
@@ -252,7 +261,8 @@ def evaluate(learner: Learner, env_cfg: MAIPPConfig, cfg: Any) -> dict[str, Any]
         rows += chunk
         if len(budgets) > 1:
             out[f"eval/trace_B{budget:g}"] = per_budget[-1]
-    out["eval/trace"] = math.exp(sum(math.log(v) for v in per_budget) / len(per_budget))
+    out["eval/trace"] = (per_budget[0] if len(per_budget) == 1 else 0.0 if min(per_budget) <= 0
+                         else math.exp(sum(math.log(v) for v in per_budget) / len(per_budget)))
     out.update({f"eval/{k}": sum(r[k] for r in rows) / len(rows) for k in ("rmse", "traps")})
     out["eval/tag"] = eval_tag(cfg)
     return out
@@ -307,11 +317,12 @@ def train(cfg: Any, run_dir: Path) -> Path:
         sched.load_state_dict(state["scheduler"])
         start, frames, episodes = state["update"], state["frames"], state["episodes"]
         wall, curve = state["wall_s"], state["curve"]
-        if (Path(cfg.resume).parent / "best.pt").exists():  # else: best of what we hold
-            # Only scores of this run's evaluation compare (rows before tags: greedy).
-            tag, old = eval_tag(cfg), f"greedy@{cfg.eval_budget:g}"
-            best = min([r["eval/trace"] for r in curve if "eval/trace" in r
-                        and r.get("eval/tag", old) == tag], default=math.inf)
+        best_path = Path(cfg.resume).parent / "best.pt"
+        if best_path.exists():  # the score of what best.pt holds, if it measured the same
+            held = torch.load(best_path, map_location="cpu", weights_only=False)["update"]
+            row = next((r for r in curve if r["update"] == held and "eval/trace" in r), None)
+            if row is not None and row_tag(row, state) == eval_tag(cfg):
+                best = row["eval/trace"]  # else a new evaluation: the selection restarts
         commands = state.get("commands", _hydra_command(Path(cfg.resume).parent)) + commands
         ckpt_path = Path(cfg.resume)
         run_dir = ckpt_path.parent
@@ -406,7 +417,8 @@ def write_card(cfg: Any, source: Path, last: Path, out: Path) -> None:
         "commit": _commit(),
         "updates": state["update"],
         "selected_update": chosen["update"],
-        "selected_by": f"lowest held-out Tr(P) (eval/trace) of {eval_tag(cfg)}"
+        "selected_by": "lowest held-out Tr(P) (eval/trace) of "
+        + row_tag(next(r for r in state["curve"] if r["update"] == chosen["update"]), state)
         if chosen["update"] != state["update"] or source != last else "last update",
         "frames": state["frames"],
         "wall_s": state["wall_s"],

@@ -267,17 +267,24 @@ def test_someone_decides_while_not_done():
         assert not torch.any(td[(*prefix, "agents", "deciding")][~not_done])
 
 
-def test_stepping_a_finished_env_changes_nothing_and_pays_nothing():
-    env = make_env(4, seed=6)
+@pytest.mark.parametrize("max_steps", [1000, 4], ids=["terminated", "truncated"])
+def test_stepping_a_finished_env_changes_nothing_and_pays_nothing(max_steps):
+    env = make_env(6, seed=6, max_steps=max_steps)
     tds = run_to_end(env)  # envs that finish early keep being stepped
-    ended = [next(t for t, td in enumerate(tds) if td["done"][i]) for i in range(4)]
-    assert len(set(ended)) > 1
+    ended = [next(t for t, td in enumerate(tds) if td["done"][i]) for i in range(6)]
+    if max_steps == 1000:
+        assert len(set(ended)) > 1
+    else:  # some truncated with agents still on an edge
+        assert any(bool(tds[t]["truncated"][i]) for i, t in enumerate(ended))
+        tds = tds + [env.step(env.rand_action(tds[-1]))["next"] for _ in range(3)]
     for i, t_end in enumerate(ended):
-        assert float(tds[t_end]["agents", "reward"][i].abs().sum()) > 0  # the terminal term
+        at_end = tds[t_end]
+        assert float(at_end["agents", "reward"][i].abs().sum()) > 0  # the terminal term
         for td in tds[t_end + 1:]:
-            assert bool(td["done"][i])
+            for key in ("done", "terminated", "truncated", ("metrics", "trace"),
+                        ("metrics", "time"), ("metrics", "measurements")):
+                assert torch.equal(td[key][i], at_end[key][i]), key
             assert not td["agents", "reward"][i].any()
-            assert torch.equal(td["metrics", "trace"][i], tds[t_end]["metrics", "trace"][i])
 
 
 def _find_masked_decider(env, seed):

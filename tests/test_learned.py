@@ -344,7 +344,8 @@ def test_held_out_evaluation_can_run_the_ranked_method_at_several_budgets(tmp_pa
 
 
 @pytest.mark.parametrize("override,message", [
-    ("eval_method=random", "attention network"),
+    ("eval_method=random", "'ours' network"),
+    ("eval_method=catnipp_ti", "'ours' network"),  # another network's features / roadmap
     ("eval_method=nonexistent", "nonexistent"),
     ("eval_budgets=[0.0]", "eval_budgets"),
 ])

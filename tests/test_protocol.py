@@ -171,6 +171,10 @@ def test_a_run_says_whether_it_reproduces_the_board_it_finds(smoke_board, tmp_pa
     changed["method_sha256"][method] = "another algorithm version"
     verdicts = {k[:2]: k[2] for k in leaderboard.reproduces(sub, changed)}
     assert verdicts[(method, setting)] == "not comparable"
+    board_of_another_protocol = json.loads(json.dumps(board))
+    board_of_another_protocol["protocol"]["sha256"] = "0" * 64
+    assert {v for *_, v in leaderboard.reproduces(sub, board_of_another_protocol)} == {
+        "not comparable"}
 
 
 def test_episode_subset_is_marked_and_kept_apart(tmp_path):

@@ -54,6 +54,8 @@ class EpisodeState:
     noise_key: torch.Tensor  # [E] int64
     time: torch.Tensor  # [E]
     steps: torch.Tensor  # [E] int64
+    terminated: torch.Tensor  # [E] bool: how the episode ended (kept while a finished env
+    truncated: torch.Tensor  # [E] bool   is stepped again: it stays exactly as it ended)
     team_budget: torch.Tensor  # [E] the episode's shared pool m * B
     budget_used: torch.Tensor  # [E] team distance committed so far
     cur: torch.Tensor  # [E, m] last node reached
@@ -283,6 +285,8 @@ class MAIPPEnv(EnvBase):
             noise_key=rng.derive(ik, tk),
             time=torch.zeros(e, **f64),
             steps=torch.zeros(e, **i64),
+            terminated=torch.zeros(e, **b),
+            truncated=torch.zeros(e, **b),
             team_budget=team_budget,
             budget_used=torch.zeros(e, **f64),
             cur=torch.zeros(e, m, **i64),
@@ -347,14 +351,17 @@ class MAIPPEnv(EnvBase):
                 f"{st.mask[ex_e, ex_a].nonzero().squeeze(-1).tolist()}"
             )
         self._take_intents(st, tensordict, deciding)
-        live = deciding.any(-1)  # a finished env (nobody decides) earns nothing more
+        live = ~(st.terminated | st.truncated)  # a finished env stays as it ended, earns 0
 
         penalty = torch.zeros(e, m, dtype=torch.float64, device=self.device)
         terminated = self._apply_moves(st, action, deciding, penalty)
         objective_before = st.objective.clone()
-        self._advance(st, terminated, penalty)
-        st.steps += 1
-        truncated = (st.steps >= cfg.max_steps) & ~terminated
+        ended = terminated | ~live  # finished envs are not advanced
+        self._advance(st, ended, penalty)
+        st.steps += live.to(st.steps.dtype)
+        terminated = torch.where(live, ended, st.terminated)
+        truncated = torch.where(live, (st.steps >= cfg.max_steps) & ~terminated, st.truncated)
+        st.terminated, st.truncated = terminated, truncated
         done = terminated | truncated
         st.deciding &= ~done.unsqueeze(-1)
         st.mask |= ~st.deciding.unsqueeze(-1)

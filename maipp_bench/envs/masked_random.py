@@ -32,6 +32,8 @@ class MaskedRandomPolicy(TensorDictModuleBase):
         if not bool(mask.any(-1).all()):
             raise ValueError("every agent needs at least one allowed slot in its "
                              "('agents', 'action_mask')")
-        u = torch.rand(mask.shape, generator=self.generator, device=mask.device)
+        g = self.generator  # may live on another device than the data (a CPU generator)
+        u = torch.rand(mask.shape, generator=g, device=g.device if g is not None else mask.device)
+        u = u.to(mask.device)
         tensordict.set(("agents", "action"), torch.where(mask, u, -1.0).argmax(-1))
         return tensordict

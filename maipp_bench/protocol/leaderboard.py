@@ -95,7 +95,8 @@ def reproduces(board: dict[str, Any], committed: dict[str, Any], rel: float = 1e
     """Check the rows of a fresh run (``board``, full or subset) against a committed board
     of the same suite: ``(method, setting, verdict)`` per row of ``board``.
 
-    Rows are comparable when both ran the same method fingerprint and checkpoint. Then the
+    Rows are comparable when both boards used the same protocol file and both rows the
+    same method fingerprint and checkpoint. Then the
     first trial's Tr(P_f) of every instance the run has must equal the committed
     ``spot_check`` (to ``rel``: another CPU may round the last bits differently), and a
     full row's ``episodes_sha256`` the committed one. Verdicts: ``"identical"`` (every
@@ -108,11 +109,13 @@ def reproduces(board: dict[str, Any], committed: dict[str, Any], rel: float = 1e
                 b.get("checkpoints", {}).get(method, {}).get("sha256"))
 
     ref = {(r["method"], r["setting"]): r for r in committed["rows"]}
+    same_protocol = board["protocol"]["sha256"] == committed["protocol"]["sha256"]
     out = []
     for row in board["rows"]:
         key = (row["method"], row["setting"])
         old = ref.get(key)
-        if old is None or ident(board, row["method"]) != ident(committed, row["method"]):
+        if (old is None or not same_protocol
+                or ident(board, row["method"]) != ident(committed, row["method"])):
             out.append((*key, "not comparable"))
             continue
         mine = dict(zip(row["spot_check"]["instances"], row["spot_check"]["trace"]))
