@@ -354,3 +354,14 @@ def test_bad_held_out_evaluation_is_a_clear_error(override, message, tmp_path):
 
     with pytest.raises(ValueError, match=message):
         train(compose_train(*TINY_TRAIN, override), tmp_path / "run")
+
+
+def test_eval_tag_names_what_a_score_measures():
+    from maipp_bench.train import eval_tag, row_tag
+
+    cfg = compose_train(*TINY_TRAIN, "eval_method=ours_ti", "eval_budgets=[3,2,2]")
+    assert eval_tag(cfg) == "ours_ti@2,3"  # sorted, each budget once
+    assert eval_tag(compose_train(*TINY_TRAIN, "eval_budget=4")) == "greedy@4"
+    # rows written before tags existed: greedy at the eval_budget of their run
+    assert row_tag({"eval/trace": 1.0}, {"config": {"eval_budget": 4.0}}) == "greedy@4"
+    assert row_tag({"eval/tag": "ours_ti@2,3"}, {}) == "ours_ti@2,3"
