@@ -14,6 +14,7 @@ import json
 import os
 import shlex
 import sys
+from collections import Counter
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
@@ -228,9 +229,7 @@ def _report_reproduction(board: dict, committed: dict, path: Path) -> None:
     """Say whether this run's rows recompute the board that was there before it (the
     committed one, for a subset or a first full run on a fresh clone)."""
     checks = leaderboard.reproduces(board, committed)
-    counts: dict[str, int] = {}
-    for _, _, verdict in checks:
-        counts[verdict] = counts.get(verdict, 0) + 1
+    counts = Counter(verdict for *_, verdict in checks)
     what = ("every episode" if board["subset"] is None and committed["subset"] is None
             else "the first trial's episodes it ran")
     print(f"against {path} (as it was before this run; {what}): "

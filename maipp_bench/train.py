@@ -234,17 +234,20 @@ def eval_spec(cfg: Any) -> tuple[MethodSpec, list[float]]:
     return spec, budgets
 
 
+def _tag(method: str, budgets: list[float]) -> str:
+    return f"{method}@{','.join(f'{b:g}' for b in budgets)}"
+
+
 def eval_tag(cfg: Any) -> str:
     """What an ``eval/trace`` value measures: only values of one tag are compared."""
-    _, budgets = eval_spec(cfg)
-    return f"{cfg.eval_method}@{','.join(f'{b:g}' for b in budgets)}"
+    return _tag(cfg.eval_method, eval_spec(cfg)[1])
 
 
 def row_tag(row: dict[str, Any], state: dict[str, Any]) -> str:
     """A curve row's eval tag; rows written before tags existed were greedy decoding at
     the ``eval_budget`` of the run that wrote them."""
-    budget = state.get("config", {}).get("eval_budget", 3.0)
-    return row.get("eval/tag", f"greedy@{float(budget):g}")
+    budget = state.get("config", {}).get("eval_budget", TrainConfig.eval_budget)
+    return row.get("eval/tag", _tag("greedy", [float(budget)]))
 
 
 def evaluate(learner: Learner, env_cfg: MAIPPConfig, cfg: Any) -> dict[str, Any]:
@@ -264,7 +267,7 @@ def evaluate(learner: Learner, env_cfg: MAIPPConfig, cfg: Any) -> dict[str, Any]
     out["eval/trace"] = (per_budget[0] if len(per_budget) == 1 else 0.0 if min(per_budget) <= 0
                          else math.exp(sum(math.log(v) for v in per_budget) / len(per_budget)))
     out.update({f"eval/{k}": sum(r[k] for r in rows) / len(rows) for k in ("rmse", "traps")})
-    out["eval/tag"] = eval_tag(cfg)
+    out["eval/tag"] = _tag(cfg.eval_method, budgets)
     return out
 
 
@@ -319,7 +322,8 @@ def train(cfg: Any, run_dir: Path) -> Path:
         wall, curve = state["wall_s"], state["curve"]
         best_path = Path(cfg.resume).parent / "best.pt"
         if best_path.exists():  # the score of what best.pt holds, if it measured the same
-            held = torch.load(best_path, map_location="cpu", weights_only=False)["update"]
+            held = torch.load(best_path, map_location="cpu", weights_only=False,
+                              mmap=True)["update"]  # mmap: only the header is read
             row = next((r for r in curve if r["update"] == held and "eval/trace" in r), None)
             if row is not None and row_tag(row, state) == eval_tag(cfg):
                 best = row["eval/trace"]  # else a new evaluation: the selection restarts

@@ -319,7 +319,6 @@ def test_best_held_out_checkpoint_is_exported(tmp_path):
 
 
 def test_held_out_evaluation_can_run_the_ranked_method_at_several_budgets(tmp_path):
-    import json
     import math
 
     from maipp_bench.train import train
