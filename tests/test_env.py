@@ -10,7 +10,7 @@ import pytest
 import torch
 from gp_reference import dense_gp, trace_in_region
 from tensordict import TensorDict
-from torchrl.envs import ActionMask, TransformedEnv
+from torchrl.envs import ActionMask, EnvBase, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
 from maipp_bench.envs import NODE_FEATURES, MAIPPConfig, MAIPPEnv
@@ -206,6 +206,36 @@ def test_terminal_metrics_survive_auto_reset():
         want = steps[t][i].select("metrics", ("agents", "observation"))
         assert float(got["metrics", "distance"]) > 0, f"env {i}: terminal distance reads 0"
         assert_td_equal(got, want, f"env {i} terminal step {t}")
+
+
+class _TorchRLMerge(MAIPPEnv):
+    """MAIPPEnv with TorchRL's own partial-reset merge (a masked ``where`` per key)."""
+
+    _reset_proc_data = EnvBase._reset_proc_data
+
+
+def test_partial_reset_merge_equals_torchrl_merge():
+    """MAIPPEnv merges a partial reset by a plain update (its _reset returns every env's
+    observation): the same data as TorchRL's masked merge, step after step with auto-reset,
+    a carried entry the env does not produce zeroed in the reset envs."""
+    envs = [cls(MAIPPConfig(**{**SMALL, "budget": 0.6}), batch_size=[5])
+            for cls in (MAIPPEnv, _TorchRLMerge)]
+    tds = []
+    for env in envs:
+        env.set_seed(4)
+        tds.append(env.reset())
+    resets = 0
+    for t in range(40):
+        for i, env in enumerate(envs):
+            td = first_allowed(tds[i])
+            td.set("carry", torch.full((5, 2), float(t + 1), dtype=F64))
+            stepped, tds[i] = env.step_and_maybe_reset(td)
+            if i == 0:
+                resets += int(stepped["next", "done"].sum())
+        assert_td_equal(tds[0], tds[1], f"step {t}")
+        done = stepped["next", "done"].squeeze(-1)
+        assert torch.all((tds[0]["carry"] == 0) == done.unsqueeze(-1)), f"step {t}"
+    assert 0 < resets < 5 * 40 // 2  # partial resets happened, not only full ones
 
 
 def test_step_output_does_not_alias_env_state():

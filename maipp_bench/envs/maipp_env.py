@@ -242,6 +242,30 @@ class MAIPPEnv(EnvBase):
             self._state[idx] = fresh
         return self._observe(self._state, no_flags, no_flags)
 
+    def _reset_proc_data(self, tensordict: TensorDictBase | None,
+                         tensordict_reset: TensorDictBase) -> TensorDictBase:
+        """Merge a (partial) reset's output into ``tensordict``.
+
+        TorchRL merges a partial reset key by key with a ``where`` over all E envs (at
+        E = 1024 about a tenth of a step of ``step_and_maybe_reset``). ``_reset`` returns
+        every env's current observation, reset or not, so a plain update gives the same
+        result; entries it does not produce (e.g. a policy's recurrent state carried in
+        the data) restart at zero in the reset envs, as TorchRL's merge does.
+        """
+        reset = None if tensordict is None else tensordict.pop("_reset", None)
+        out = super()._reset_proc_data(None, tensordict_reset)  # done-flag checks only
+        if tensordict is None:
+            return out
+        if reset is not None:
+            rows = reset.reshape(self.batch_size)
+            produced = set(out.keys(True, True))
+            for key in tensordict.keys(True, True):
+                if key not in produced:
+                    value = tensordict.get(key)
+                    fill = rows.view(*rows.shape, *(1,) * (value.ndim - rows.ndim))
+                    tensordict.set(key, value.masked_fill(fill, 0))
+        return tensordict.update(out)
+
     def _new_episodes(self, ik: torch.Tensor, tk: torch.Tensor) -> EpisodeState:
         cfg, dev = self.config, self.device
         e, m = ik.shape[0], self.n_agents
