@@ -40,16 +40,24 @@ def selected_frames(source: str | Path) -> int | None:
     return at[0] if at else None
 
 
+def eval_title(sources: dict[str, list[dict[str, Any]]]) -> str:
+    """Title of the held-out panel: the evaluations it shows, by tag (``greedy@3``)."""
+    # Rows written before eval tags existed were greedy decoding (at one of the tagged
+    # greedy budgets, if any appear).
+    tags = {r.get("eval/tag", "greedy") for rows in sources.values() for r in rows
+            if "eval/trace" in r}
+    if any(t.startswith("greedy@") for t in tags):
+        tags.discard("greedy")
+    return "Tr(P_f), held-out " + (" / ".join(sorted(tags)) or "greedy") + " eval"
+
+
 def plot_curves(sources: dict[str, list[dict[str, Any]]], out: str | Path,
                 selected: dict[str, int] | None = None) -> Path:
     """One figure, three panels, one line per named curve, a dashed line at each curve's
     ``selected`` frames; written to ``out`` (PNG)."""
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.6), constrained_layout=True)
-    # Rows before eval tags were greedy decoding; name what the held-out panel shows.
-    tags = sorted({r.get("eval/tag", "greedy") for rows in sources.values() for r in rows
-                   if "eval/trace" in r})
     panels = [("trace_final", "Tr(P_f), training episodes"),
-              ("eval/trace", "Tr(P_f), held-out " + (" / ".join(tags) or "greedy") + " eval"),
+              ("eval/trace", eval_title(sources)),
               ("reward_per_decision", "reward per decision")]
     for ax, (key, title) in zip(axes, panels):
         for name, rows in sources.items():

@@ -208,6 +208,19 @@ def test_training_curve_marks_the_shipped_update(tmp_path):
     assert (tmp_path / "c.png").stat().st_size > 5000
 
 
+def test_eval_panel_title_names_the_evaluations():
+    from maipp_bench.curves import eval_title
+
+    old = [{"update": 1, "eval/trace": 9.0}, {"update": 2}]  # before eval tags: greedy
+    tagged = [{"update": 3, "eval/trace": 8.0, "eval/tag": "greedy@3"}]
+    ti = [{"update": 4, "eval/trace": 7.0, "eval/tag": "ours_ti@2,3"}]
+    assert eval_title({"a": old}) == "Tr(P_f), held-out greedy eval"
+    assert eval_title({"a": old + tagged}) == "Tr(P_f), held-out greedy@3 eval"
+    assert eval_title({"a": old + tagged, "b": ti}) == (
+        "Tr(P_f), held-out greedy@3 / ours_ti@2,3 eval")
+    assert eval_title({"a": [{"update": 1}]}) == "Tr(P_f), held-out greedy eval"
+
+
 def test_algo_configs_compose_as_documented():
     catnipp = compose_train("algo=catnipp")
     assert catnipp.algo.feature_set == "catnipp" and catnipp.env.prune_risky_nodes
