@@ -32,7 +32,7 @@ PHASES = {  # label -> (file suffix, function name) as cProfile names them
     "    observation (_observe, step and reset)": ("maipp_env.py", "_observe"),
     "  partial resets (EnvBase.reset)": ("torchrl/envs/common.py", "reset"),
     "    new episodes (_new_episodes)": ("maipp_env.py", "_new_episodes"),
-    "    TorchRL merge (_update_during_reset)": ("torchrl/envs/utils.py", "_update_during_reset"),
+    "    merge into the step's data (_reset_proc_data)": ("maipp_env.py", "_reset_proc_data"),
 }
 
 
