@@ -214,28 +214,53 @@ class _TorchRLMerge(MAIPPEnv):
     _reset_proc_data = EnvBase._reset_proc_data
 
 
-def test_partial_reset_merge_equals_torchrl_merge():
-    """MAIPPEnv merges a partial reset by a plain update (its _reset returns every env's
-    observation): the same data as TorchRL's masked merge, step after step with auto-reset,
-    a carried entry the env does not produce zeroed in the reset envs."""
-    envs = [cls(MAIPPConfig(**{**SMALL, "budget": 0.6}), batch_size=[5])
+def _merge_pair(n_envs, **overrides):
+    envs = [cls(MAIPPConfig(**{**SMALL, "budget": 0.6, **overrides}), batch_size=[n_envs])
             for cls in (MAIPPEnv, _TorchRLMerge)]
-    tds = []
     for env in envs:
         env.set_seed(4)
-        tds.append(env.reset())
-    resets = 0
+    return envs
+
+
+@pytest.mark.parametrize("n_envs", [1, 5])
+def test_auto_reset_merge_equals_torchrl_merge(n_envs):
+    """MAIPPEnv merges a reset by a plain update (its _reset returns every env's data):
+    step after step with auto-reset the same data as TorchRL's masked merge, a carried
+    entry the env does not produce zeroed in the reset envs only when some envs go on
+    (TorchRL's full reset keeps it). E = 1: every reset is full; E = 5: partial ones."""
+    envs = _merge_pair(n_envs)
+    tds = [env.reset() for env in envs]
+    partial = full = 0
     for t in range(40):
+        outs = []
         for i, env in enumerate(envs):
             td = first_allowed(tds[i])
-            td.set("carry", torch.full((5, 2), float(t + 1), dtype=F64))
-            stepped, tds[i] = env.step_and_maybe_reset(td)
-            if i == 0:
-                resets += int(stepped["next", "done"].sum())
-        assert_td_equal(tds[0], tds[1], f"step {t}")
-        done = stepped["next", "done"].squeeze(-1)
-        assert torch.all((tds[0]["carry"] == 0) == done.unsqueeze(-1)), f"step {t}"
-    assert 0 < resets < 5 * 40 // 2  # partial resets happened, not only full ones
+            td.set("carry", torch.full((n_envs, 2), float(t + 1), dtype=F64))
+            outs.append(env.step_and_maybe_reset(td))
+            tds[i] = outs[-1][1]
+        assert_td_equal(outs[0][0], outs[1][0], f"step {t}: stepped data")
+        assert_td_equal(tds[0], tds[1], f"step {t}: data after the reset")
+        done = outs[0][0]["next", "done"].squeeze(-1)
+        partial += bool(done.any() and not done.all())
+        full += bool(done.all())
+        zeroed = done.unsqueeze(-1) & ~done.all()
+        assert torch.all((tds[0]["carry"] == 0) == zeroed), f"step {t}"
+    assert full if n_envs == 1 else partial
+
+
+def test_explicit_partial_reset_merge_equals_torchrl_merge():
+    """A hand-written partial reset, a finished env left alone (it stays done), and an
+    input holding only ``_reset`` (TorchRL pads the other envs with zeros): as TorchRL."""
+    envs = _merge_pair(3)
+    finals = [run_to_end(env)[-1] for env in envs]  # every env finished, none reset
+    chosen = torch.tensor([[True], [False], [False]])
+    out = [env.reset(finals[i].clone().set("_reset", chosen)) for i, env in enumerate(envs)]
+    assert_td_equal(out[0], out[1], "full input")
+    assert out[0]["done"].squeeze(-1).tolist() == [False, True, True]
+    with pytest.warns(UserWarning, match="partial `'_reset'`"):  # TorchRL's, on both
+        sparse = [env.reset(TensorDict({"_reset": chosen.roll(1, 0)}, batch_size=[3]))
+                  for env in envs]
+    assert_td_equal(sparse[0], sparse[1], "input holding only _reset")
 
 
 def test_step_output_does_not_alias_env_state():

@@ -222,9 +222,8 @@ class MAIPPEnv(EnvBase):
         if self._state is None:
             which = torch.ones_like(which)  # the first reset builds every env
         idx = which.nonzero().squeeze(-1)
-        no_flags = torch.zeros(e, dtype=torch.bool, device=self.device)
         if idx.numel() == 0:
-            return self._observe(self._state, no_flags, no_flags)
+            return self._observe(self._state, self._state.terminated, self._state.truncated)
         # Env e's k-th episode is keyed by (seed, e, k): independent of the batch size.
         ik = rng.derive(self._seed_key, idx, self._episode[idx], 0)
         tk = rng.derive(self._seed_key, idx, self._episode[idx], 1)
@@ -240,31 +239,35 @@ class MAIPPEnv(EnvBase):
             self._state = fresh
         else:
             self._state[idx] = fresh
-        return self._observe(self._state, no_flags, no_flags)
+        # Envs not reset report their own flags (a finished env left alone stays done).
+        return self._observe(self._state, self._state.terminated, self._state.truncated)
 
     def _reset_proc_data(self, tensordict: TensorDictBase | None,
                          tensordict_reset: TensorDictBase) -> TensorDictBase:
-        """Merge a (partial) reset's output into ``tensordict``.
+        """Merge a partial reset's output into ``tensordict`` without a ``where`` per key.
 
-        TorchRL merges a partial reset key by key with a ``where`` over all E envs (at
-        E = 1024 about a tenth of a step of ``step_and_maybe_reset``). ``_reset`` returns
-        every env's current observation, reset or not, so a plain update gives the same
-        result; entries it does not produce (e.g. a policy's recurrent state carried in
-        the data) restart at zero in the reset envs, as TorchRL's merge does.
+        TorchRL merges a partial reset key by key with a masked ``where`` over all E envs
+        (at E = 1024 about a tenth of a ``step_and_maybe_reset`` step). ``_reset`` returns
+        every env's current data, reset or not (done flags included), so when the input
+        holds the env's latest output (as in ``step_and_maybe_reset``) a plain update gives
+        the same result; TorchRL's zero padding is kept for entries only one side has.
+        Wrappers (``TransformedEnv``, batched envs) merge with TorchRL's own code.
         """
-        reset = None if tensordict is None else tensordict.pop("_reset", None)
-        out = super()._reset_proc_data(None, tensordict_reset)  # done-flag checks only
-        if tensordict is None:
-            return out
-        if reset is not None:
-            rows = reset.reshape(self.batch_size)
-            produced = set(out.keys(True, True))
-            for key in tensordict.keys(True, True):
-                if key not in produced:
-                    value = tensordict.get(key)
+        if tensordict is None or "_reset" not in tensordict.keys():
+            return super()._reset_proc_data(tensordict, tensordict_reset)  # a full reset
+        self._complete_done(self.full_done_spec, tensordict_reset)
+        self._reset_check_done(tensordict, tensordict_reset)
+        reset = tensordict.pop("_reset").reshape(self.batch_size)
+        if not bool(reset.all()):  # TorchRL pads: a full reset is a plain update there too
+            present, produced = (set(td.keys(True, True)) for td in (tensordict,
+                                                                     tensordict_reset))
+            for td, keys, rows in ((tensordict, present - produced, reset),
+                                   (tensordict_reset, produced - present, ~reset)):
+                for key in keys:  # e.g. a policy's recurrent state restarts at 0
+                    value = td.get(key)
                     fill = rows.view(*rows.shape, *(1,) * (value.ndim - rows.ndim))
-                    tensordict.set(key, value.masked_fill(fill, 0))
-        return tensordict.update(out)
+                    td.set(key, value.masked_fill(fill, 0))
+        return tensordict.update(tensordict_reset)
 
     def _new_episodes(self, ik: torch.Tensor, tk: torch.Tensor) -> EpisodeState:
         cfg, dev = self.config, self.device
