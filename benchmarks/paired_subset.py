@@ -18,6 +18,10 @@ Usage:
         maipp_bench/checkpoints/ours.pt
     python benchmarks/paired_subset.py --heldout maipp_bench/checkpoints/ours_v1.pt \\
         maipp_bench/checkpoints/ours.pt --heldout-method ours_ti --budgets 2 3 4 5
+    python benchmarks/paired_subset.py --heldout A.pt B.pt --heldout-method ours_ti \\
+        --budgets 2 --episodes 96 --cache outputs/heldout   # one process per budget, then
+    python benchmarks/paired_subset.py --heldout A.pt B.pt --heldout-method ours_ti \\
+        --budgets 2 3 4 5 --episodes 96 --cache outputs/heldout   # prints from the cache
     python benchmarks/paired_subset.py --subset out/subset-60 --method ours_ti \\
         --against ours_ti catnipp_ti sga_rrt_0.3_0.4 oracle
 """
@@ -38,9 +42,14 @@ def _mean_se(values: list[float]) -> tuple[float, float]:
     return st.mean(values), se
 
 
-def heldout(paths: list[str], episodes: int, budgets: list[float], method: str | None) -> None:
+def heldout(paths: list[str], episodes: int, budgets: list[float], method: str | None,
+            cache: Path | None = None) -> None:
     """Each checkpoint on the same held-out episodes per budget, played by ``method`` (None:
-    training's model selection, greedy decoding); paired differences to the first one."""
+    training's model selection, greedy decoding); paired differences to the first one.
+    With ``cache``, each (checkpoint, method, budget, episodes)'s rows are kept there and
+    reused: budgets can run in separate processes, a checkpoint's rows once."""
+    import hashlib
+
     from maipp_bench.algos.checkpoint import load_core
     from maipp_bench.algos.registry import get_method
     from maipp_bench.envs.config import MAIPPConfig
@@ -48,12 +57,20 @@ def heldout(paths: list[str], episodes: int, budgets: list[float], method: str |
 
     spec = get_method(method) if method else greedy_method("heldout")
     nets = {path: load_core(path) for path in paths}
+    shas = {path: hashlib.sha256(Path(path).read_bytes()).hexdigest()[:12] for path in paths}
     for budget in budgets:
         print(f"budget {budget}: {episodes} held-out episodes, {spec.name}")
         first: list[float] | None = None
         for path, (core, payload) in nets.items():
-            rows = heldout_rows(core, MAIPPConfig.from_dict(payload["env"]), episodes, budget,
-                                spec)
+            file = cache and cache / f"{shas[path]}_{spec.name}_B{budget:g}_{episodes}.json"
+            if file and file.exists():
+                rows = json.loads(file.read_text())
+            else:
+                rows = heldout_rows(core, MAIPPConfig.from_dict(payload["env"]), episodes,
+                                    budget, spec)
+                if file:
+                    file.parent.mkdir(parents=True, exist_ok=True)
+                    file.write_text(json.dumps(rows))
             trace = [r["trace"] for r in rows]
             first = first or trace
             diff, se = _mean_se([t - f for t, f in zip(trace, first)])
@@ -91,6 +108,8 @@ def main() -> None:
     p.add_argument("--heldout-method", metavar="METHOD",
                    help="--heldout: run this registered method (e.g. ours_ti) with each "
                         "checkpoint instead of training's greedy score")
+    p.add_argument("--cache", type=Path, metavar="DIR",
+                   help="--heldout: keep each checkpoint's rows per budget here and reuse them")
     p.add_argument("--subset", type=Path,
                    help="rows kept apart: an eval --out folder (or its subset-N folder)")
     p.add_argument("--suite", default="risk_aware")
@@ -100,7 +119,7 @@ def main() -> None:
     args = p.parse_args()
     torch.set_num_threads(1)
     if args.heldout:
-        heldout(args.heldout, args.episodes, args.budgets, args.heldout_method)
+        heldout(args.heldout, args.episodes, args.budgets, args.heldout_method, args.cache)
     if args.subset:
         if not (args.method and args.against):
             p.error("--subset needs --method and --against")
