@@ -8,6 +8,9 @@
    Q = 1101 columns, P new points): a fresh gather (a new tensor each call), a gather into
    a reused buffer (what ``add`` does), and a gather-free weighted row sum
    (``embedding_bag``; not used: it changes the summation order, hence result bits).
+3. The partial-reset merge, side by side: steps per second of ``step_and_maybe_reset`` with
+   MAIPPEnv's merge (a plain update) and with TorchRL's (a masked ``where`` per key over
+   all E), interleaved chunks of steps, median of the per-pair ratios.
 
 Usage:
     OMP_NUM_THREADS=1 python benchmarks/env_profile.py --envs 1024
@@ -18,10 +21,13 @@ from __future__ import annotations
 import argparse
 import cProfile
 import pstats
+import statistics
+import time
 
 import torch
 import torch.nn.functional as F
 from bench_timing import seconds_per_call
+from torchrl.envs import EnvBase
 
 from maipp_bench.envs import MAIPPConfig, MAIPPEnv
 
@@ -78,6 +84,36 @@ def gather_costs(s: int, e: int, h: int, q: int, p: int, repeats: int) -> dict[s
     return {name: 1000 * seconds_per_call(fn, repeats) for name, fn in ways.items()}
 
 
+class TorchRLMergeEnv(MAIPPEnv):
+    """MAIPPEnv merging partial resets with TorchRL's own code (as before 2026-11-22)."""
+
+    _reset_proc_data = EnvBase._reset_proc_data
+
+
+def merge_ab(n_envs: int, warmup: int, steps: int, repeats: int) -> dict[str, float]:
+    """Milliseconds per step with each merge (medians) and the median per-pair speed-up."""
+    runs = {}
+    for name, cls in (("MAIPPEnv merge", MAIPPEnv), ("TorchRL merge", TorchRLMergeEnv)):
+        env = cls(MAIPPConfig(budget=3.0), batch_size=[n_envs])
+        env.set_seed(0)
+        td = env.reset()
+        for _ in range(warmup):
+            _, td = env.step_and_maybe_reset(env.rand_action(td))
+        runs[name] = [env, td, []]
+    for _ in range(repeats):
+        for run in runs.values():
+            env, td, times = run
+            t0 = time.perf_counter()
+            for _ in range(steps):
+                _, td = env.step_and_maybe_reset(env.rand_action(td))
+            times.append(1000 * (time.perf_counter() - t0) / steps)
+            run[1] = td
+    (_, _, ours), (_, _, theirs) = runs.values()
+    out = {name: statistics.median(run[2]) for name, run in runs.items()}
+    out["speed-up (median of pairs)"] = statistics.median(t / o for o, t in zip(ours, theirs))
+    return out
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--envs", type=int, default=1024)
@@ -85,6 +121,8 @@ def main() -> None:
     p.add_argument("--steps", type=int, default=40)
     p.add_argument("--gather", type=int, nargs=3, default=[250, 49, 3], metavar=("S", "H", "P"),
                    help="selected beliefs, rows of V and new points for the gather timing")
+    p.add_argument("--merge-repeats", type=int, default=15,
+                   help="interleaved chunks per merge in the A/B (0: skip it)")
     args = p.parse_args()
     if not 1 <= args.gather[0] <= args.envs:
         p.error(f"--gather S must be in [1, --envs] = [1, {args.envs}], got {args.gather[0]}")
@@ -97,6 +135,12 @@ def main() -> None:
     print(f"gather: S={s} of E={args.envs} beliefs, h={h}, Q=1101, P={pts}, ms per call")
     for label, ms in gather_costs(s, args.envs, h, 1101, pts, 10).items():
         print(f"  {label:48s} {ms:8.1f}")
+    if not args.merge_repeats:
+        return
+    print(f"merge A/B: E={args.envs}, {args.merge_repeats} interleaved chunks of 10 steps "
+          f"each, ms per step (no profiler)")
+    for label, v in merge_ab(args.envs, args.warmup, 10, args.merge_repeats).items():
+        print(f"  {label:48s} {v:8.2f}")
 
 
 if __name__ == "__main__":
