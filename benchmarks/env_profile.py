@@ -10,7 +10,8 @@
    (``embedding_bag``; not used: it changes the summation order, hence result bits).
 3. The partial-reset merge, side by side: steps per second of ``step_and_maybe_reset`` with
    MAIPPEnv's merge (a plain update) and with TorchRL's (a masked ``where`` per key over
-   all E), interleaved chunks of steps, median of the per-pair ratios.
+   all E), interleaved chunks of the same random steps (the two give the same data),
+   median of the per-pair ratios.
 
 Usage:
     OMP_NUM_THREADS=1 python benchmarks/env_profile.py --envs 1024
@@ -97,12 +98,14 @@ def merge_ab(n_envs: int, warmup: int, steps: int, repeats: int) -> dict[str, fl
         env = cls(MAIPPConfig(budget=3.0), batch_size=[n_envs])
         env.set_seed(0)
         td = env.reset()
+        torch.manual_seed(0)
         for _ in range(warmup):
             _, td = env.step_and_maybe_reset(env.rand_action(td))
         runs[name] = [env, td, []]
-    for _ in range(repeats):
+    for r in range(repeats):
         for run in runs.values():
             env, td, times = run
+            torch.manual_seed(1 + r)  # same actions: both envs go through the same states
             t0 = time.perf_counter()
             for _ in range(steps):
                 _, td = env.step_and_maybe_reset(env.rand_action(td))
