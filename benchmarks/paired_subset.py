@@ -48,16 +48,15 @@ def heldout(paths: list[str], episodes: int, budgets: list[float], method: str |
     training's model selection, greedy decoding); paired differences to the first one.
     With ``cache``, each (checkpoint, method, budget, episodes)'s rows are kept there and
     reused: budgets can run in separate processes, a checkpoint's rows once."""
-    import hashlib
-
     from maipp_bench.algos.checkpoint import load_core
     from maipp_bench.algos.registry import get_method
     from maipp_bench.envs.config import MAIPPConfig
+    from maipp_bench.protocol.protocol import file_sha256
     from maipp_bench.train import greedy_method, heldout_rows
 
     spec = get_method(method) if method else greedy_method("heldout")
     nets = {path: load_core(path) for path in paths}
-    shas = {path: hashlib.sha256(Path(path).read_bytes()).hexdigest()[:12] for path in paths}
+    shas = {path: file_sha256(Path(path))[:12] for path in paths}
     for budget in budgets:
         print(f"budget {budget}: {episodes} held-out episodes, {spec.name}")
         first: list[float] | None = None

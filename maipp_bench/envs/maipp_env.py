@@ -222,8 +222,14 @@ class MAIPPEnv(EnvBase):
         if self._state is None:
             which = torch.ones_like(which)  # the first reset builds every env
         idx = which.nonzero().squeeze(-1)
-        if idx.numel() == 0:
-            return self._observe(self._state, self._state.terminated, self._state.truncated)
+        if idx.numel():
+            self._start_episodes(idx, tensordict)
+        # Envs not reset report their own flags (a finished env left alone stays done).
+        return self._observe(self._state, self._state.terminated, self._state.truncated)
+
+    def _start_episodes(self, idx: torch.Tensor, tensordict: TensorDictBase | None) -> None:
+        """Envs ``idx`` start their next episode (seeds from ``tensordict`` if it pins them)."""
+        e = self.n_envs
         # Env e's k-th episode is keyed by (seed, e, k): independent of the batch size.
         ik = rng.derive(self._seed_key, idx, self._episode[idx], 0)
         tk = rng.derive(self._seed_key, idx, self._episode[idx], 1)
@@ -239,8 +245,6 @@ class MAIPPEnv(EnvBase):
             self._state = fresh
         else:
             self._state[idx] = fresh
-        # Envs not reset report their own flags (a finished env left alone stays done).
-        return self._observe(self._state, self._state.terminated, self._state.truncated)
 
     def _reset_proc_data(self, tensordict: TensorDictBase | None,
                          tensordict_reset: TensorDictBase) -> TensorDictBase:
