@@ -9,7 +9,7 @@ import torch
 from gp_reference import dense_gp, trace_in_region
 
 from maipp_bench.envs import GPBelief, GPPrior, MAIPPConfig, MAIPPEnv
-from maipp_bench.envs.belief import interest_trace
+from maipp_bench.envs.belief import _gathered_product, interest_trace
 from maipp_bench.envs.world import grid_points
 
 F64 = torch.float64
@@ -212,6 +212,25 @@ def test_gathered_gives_the_bits_of_index_then_grown(dense):
             b.add(PRIOR, q, x, torch.zeros(9, 3, 2), mask)
     assert torch.equal(new.mu, old.mu) and torch.equal(new.sigma2, old.sigma2)
     assert torch.equal(new.count, old.count)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_gathered_product_gives_the_bits_of_gather_then_bmm(dtype):
+    """The blocked product in GPBelief.add reads only used rows (unused slots read the
+    belief's zero last row) and must equal gathering the whole prefix then one bmm, bit
+    for bit, whatever the block boundaries: ragged counts, a full belief, an empty one."""
+    gen = torch.Generator().manual_seed(5)
+    n_beliefs, cap, nq, p = 40, 12, 37, 3
+    count = torch.randint(0, cap + 1, (n_beliefs,), generator=gen)
+    count[3], count[7] = cap, 0
+    table = torch.randn(n_beliefs, cap, nq, generator=gen, dtype=dtype)
+    table *= (torch.arange(cap) < count.unsqueeze(-1)).unsqueeze(-1)  # unused rows are zero
+    idx = torch.tensor([0, 3, 4, 7, 9, 10, 11, 13, 17, 18, 20, 25, 26, 31, 33, 38, 39])
+    for h in (int(count[idx].max()), cap):
+        left = torch.randn(len(idx), p, h, generator=gen, dtype=dtype)
+        left *= (torch.arange(h) < count[idx].unsqueeze(-1)).unsqueeze(1)
+        got = _gathered_product(left, table, idx, count[idx])
+        assert torch.equal(got, left @ table[idx, :h])
 
 
 def test_fantasy_trace_equals_trace_of_fantasy_variance():

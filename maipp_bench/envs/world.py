@@ -60,7 +60,14 @@ class World:
 
     def signal(self, points: torch.Tensor, mix_lambda: float) -> torch.Tensor:
         """The interest signal the agents measure: y_mix = y_it (1 - lambda y_rk)."""
-        return self.interest(points) * (1.0 - mix_lambda * self.risk(points))
+        return self.measure(points, mix_lambda)[0]
+
+    def measure(self, points: torch.Tensor, mix_lambda: float
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        """What a sensor at ``points [E, P, 2]`` reads, noise-free: the interest signal
+        and the risk, ``[E, P]`` each (the risk field evaluated once for both)."""
+        risk = self.risk(points)
+        return self.interest(points) * (1.0 - mix_lambda * risk), risk
 
     def grid_signal(self, grid_size: int, mix_lambda: float) -> torch.Tensor:
         """The interest signal on the ``G x G`` evaluation grid -> ``[E, G*G]`` (fast path)."""
