@@ -246,8 +246,8 @@ class GPBelief:
             self.mu.view(-1, nq, nc).add_(d_mu)
             self.sigma2.view(-1, nq).sub_(d_var)
         else:
-            self.mu.view(-1, nq, nc)[idx] += d_mu
-            self.sigma2.view(-1, nq)[idx] -= d_var
+            self.mu.view(-1, nq, nc).index_add_(0, idx, d_mu)  # idx unique: x[idx] += d
+            self.sigma2.view(-1, nq).index_add_(0, idx, d_var, alpha=-1)
         if dense:
             self.count.view(-1).add_(n_new)
         else:
