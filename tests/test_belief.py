@@ -221,14 +221,17 @@ def test_gathered_product_gives_the_bits_of_gather_then_bmm(dtype):
     for bit, whatever the block boundaries: ragged counts, a full belief, an empty one."""
     gen = torch.Generator().manual_seed(5)
     n_beliefs, cap, nq, p = 40, 12, 37, 3
-    count = torch.randint(0, cap + 1, (n_beliefs,), generator=gen)
-    count[3], count[7] = cap, 0
+    count = torch.randint(0, cap - 1, (n_beliefs,), generator=gen)
+    count[3], count[7] = cap, 0  # only belief 3 is full
     table = torch.randn(n_beliefs, cap, nq, generator=gen, dtype=dtype)
     table *= (torch.arange(cap) < count.unsqueeze(-1)).unsqueeze(-1)  # unused rows are zero
-    idx = torch.tensor([0, 3, 4, 7, 9, 10, 11, 13, 17, 18, 20, 25, 26, 31, 33, 38, 39])
-    for h in (int(count[idx].max()), cap):
-        left = torch.randn(len(idx), p, h, generator=gen, dtype=dtype)
-        left *= (torch.arange(h) < count[idx].unsqueeze(-1)).unsqueeze(1)
+    with_full = torch.tensor([0, 3, 4, 7, 9, 10, 11, 13, 17, 18, 20, 25, 26, 31, 33, 38, 39])
+    for idx in (with_full, with_full[with_full != 3]):  # h == cap, then h < cap
+        h = int(count[idx].max())
+        assert h == cap or h < cap - 1
+        # add passes B^T, a transposed view
+        left = torch.randn(len(idx), h, p, generator=gen, dtype=dtype).transpose(1, 2)
+        left = left * (torch.arange(h) < count[idx].unsqueeze(-1)).unsqueeze(1)
         got = _gathered_product(left, table, idx, count[idx])
         assert torch.equal(got, left @ table[idx, :h])
 

@@ -226,7 +226,12 @@ class GPBelief:
         s = torch.where(fm.unsqueeze(-1) & fm.unsqueeze(-2), s, eye)  # padding: identity
         ls_inv = cholesky_inverse_small(s)  # [S, P, P]
         flat_v = self.cross.view(-1, cap, nq)
-        bv = bmt @ flat_v[:, :h] if dense else _gathered_product(bmt, flat_v, idx, n)
+        if dense:
+            bv = bmt @ flat_v[:, :h]
+        elif flat_v.is_cuda:  # one gather + bmm: a per-block loop would be launch bound
+            bv = bmt @ torch.index_select(flat_v[:, :h], 0, idx)
+        else:
+            bv = _gathered_product(bmt, flat_v, idx, n)
         w = prior.cov(xs, q).sub_(bv).mul_(fm.unsqueeze(-1))  # [S, P, Q]
         v_new = ls_inv @ w
         z_new = ls_inv @ ((ys - bmt @ Z) * fm.unsqueeze(-1))
@@ -379,7 +384,7 @@ class GPBelief:
 
 
 _SCRATCH: dict[tuple, torch.Tensor] = {}
-_CHUNK = 8  # beliefs per block of _gathered_product: a block of V stays in cache
+_CHUNK = 8  # beliefs per block of _gathered_product: a few MB, reread from cache by bmm
 
 
 def _gathered_product(left: torch.Tensor, table: torch.Tensor, idx: torch.Tensor,
@@ -389,11 +394,12 @@ def _gathered_product(left: torch.Tensor, table: torch.Tensor, idx: torch.Tensor
 
     Streaming V is the O(nQ) cost of :meth:`GPBelief.add`, and the selected beliefs hold
     far fewer rows than the largest (at E = 1024 their mean count is a third of the max).
-    Each block of beliefs is gathered into a reused, cache-sized buffer and multiplied
+    Each block of beliefs is gathered into a reused buffer of a few MB and multiplied
     there; an unused slot reads its belief's last row instead, which is zero like every
     unused row (a slot >= count exists only if count < cap), and is read once, then hit in
-    cache. The operands are those of gathering ``table[idx, :h]`` and one ``bmm``, with the
-    same shapes: the same bits.
+    cache. Each matrix of the batch gets the operands and the shape it gets from gathering
+    ``table[idx, :h]`` and one ``bmm`` (on CPU, bmm computes the items one by one): the
+    same bits. CPU only (a per-block loop would be launch bound on a GPU).
     """
     s, p, h = left.shape
     cap, nq = table.shape[-2:]
@@ -413,10 +419,10 @@ def _scratch(tag: str, shape: tuple[int, ...], dtype: torch.dtype,
              device: torch.device) -> torch.Tensor:
     """A grow-only buffer of ``shape`` for ``tag``, reused across calls.
 
-    The gathers of :meth:`GPBelief.add` reach hundreds of MB at E = 1024; a fresh
-    allocation that large is mmapped and page-faulted on every call (glibc serves blocks
-    above 32 MB straight from mmap): 67 ms against 19 ms per gather + product at E = 1024
-    (``benchmarks/env_profile.py``).
+    :meth:`GPBelief.add` gathers the selected beliefs' rows on every call; a fresh tensor
+    above 32 MB is mmapped and page-faulted on every call (glibc serves such blocks from
+    mmap): when V was gathered whole, 65 ms against 18 ms per gather + product at
+    E = 1024 (``benchmarks/env_profile.py``).
     Contents are overwritten by the next call with the same tag: callers use them locally.
     Buffers made under ``torch.inference_mode`` (evaluation) cannot be written outside it
     (training in the same process), so each mode keeps its own.
