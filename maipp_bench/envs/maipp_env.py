@@ -526,20 +526,28 @@ class MAIPPEnv(EnvBase):
     def _log_measurements(self, st, pts, agent, valid, times) -> None:
         """Append noisy measurements ``pts [E, P, 2]`` to the team log; discover evidence."""
         cfg = self.config
-        e_idx, p_idx = valid.nonzero(as_tuple=True)
-        slot = st.meas_count.unsqueeze(-1) + torch.cumsum(valid.to(torch.int64), -1) - 1
-        noise = rng.normal(rng.derive(st.noise_key.unsqueeze(-1), slot), (2,))
-        values = torch.stack(st.world.measure(pts, cfg.risk_mix_lambda), -1)
+        # A fifth of the envs measure at a step: evaluate fields, noise and detection there
+        # only (every value is computed per point, so the same bits as over all E).
+        sel = valid.any(-1).nonzero().squeeze(-1)
+        if sel.numel() == 0:
+            return
+        pts, agent, valid, times = pts[sel], agent[sel], valid[sel], times[sel]
+        world = st.world[sel]
+        row, p_idx = valid.nonzero(as_tuple=True)
+        e_idx = sel[row]
+        slot = st.meas_count[sel].unsqueeze(-1) + torch.cumsum(valid.to(torch.int64), -1) - 1
+        noise = rng.normal(rng.derive(st.noise_key[sel].unsqueeze(-1), slot), (2,))
+        values = torch.stack(world.measure(pts, cfg.risk_mix_lambda), -1)
         values = values + cfg.measurement_noise_std * noise
-        s, a = slot[e_idx, p_idx], agent[e_idx, p_idx]
-        st.meas_x[e_idx, s] = pts[e_idx, p_idx]
-        st.meas_y[e_idx, s] = values[e_idx, p_idx]
+        s, a = slot[row, p_idx], agent[row, p_idx]
+        st.meas_x[e_idx, s] = pts[row, p_idx]
+        st.meas_y[e_idx, s] = values[row, p_idx]
         st.meas_agent[e_idx, s] = a
-        st.meas_time[e_idx, s] = times[e_idx, p_idx]
+        st.meas_time[e_idx, s] = times[row, p_idx]
         st.known[e_idx, a, s] = True
-        st.meas_count = st.meas_count + valid.sum(-1)
-        near = torch.cdist(pts, st.world.evidence) <= cfg.detect_radius  # [E, P, Ki]
-        st.evidence_found = st.evidence_found | (near & valid.unsqueeze(-1)).any(1)
+        st.meas_count = st.meas_count.index_add(0, sel, valid.sum(-1))
+        near = torch.cdist(pts, world.evidence) <= cfg.detect_radius  # [S, P, Ki]
+        st.evidence_found[sel] |= (near & valid.unsqueeze(-1)).any(1)
 
     def _arrive(self, st: EpisodeState, arrived: torch.Tensor, penalty: torch.Tensor) -> None:
         cfg = self.config
