@@ -3,7 +3,8 @@
 1. Steady-state profile: E envs under a random masked policy with auto-reset (as in
    ``env_throughput.py``), warmed up until episodes of every age are in the batch, then
    ``cProfile`` over ``--steps`` steps; prints milliseconds per step (cumulative) of the
-   phases named below.
+   phases named below, and how many beliefs take measurements per step, with their mean
+   and largest counts (what the used-row product of ``GPBelief.add`` saves).
 2. The cross-covariance product B^T V of ``GPBelief.add`` in isolation (S of E beliefs, up
    to h rows of Q = 1101 columns, P new points): a fresh gather of the h-row prefixes (a
    new tensor each call), a gather into a reused buffer (what ``add`` did until
@@ -22,6 +23,7 @@ Usage:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import cProfile
 import pstats
 import statistics
@@ -33,7 +35,7 @@ from bench_timing import seconds_per_call
 from torchrl.envs import EnvBase
 
 from maipp_bench.envs import MAIPPConfig, MAIPPEnv
-from maipp_bench.envs.belief import _gathered_product
+from maipp_bench.envs.belief import GPBelief, _gathered_product
 
 PHASES = {  # label -> (file suffix, function name) as cProfile names them
     "whole step (rand_action excluded)": ("torchrl/envs/common.py", "step_and_maybe_reset"),
@@ -42,6 +44,7 @@ PHASES = {  # label -> (file suffix, function name) as cProfile names them
     "    observation (_observe, step and reset)": ("maipp_env.py", "_observe"),
     "  partial resets (EnvBase.reset)": ("torchrl/envs/common.py", "reset"),
     "    new episodes (_new_episodes)": ("maipp_env.py", "_new_episodes"),
+    "      roadmaps (build_roadmap: k-NN topk)": ("roadmap.py", "build_roadmap"),
     "    merge into the step's data (_reset_proc_data)": ("maipp_env.py", "_reset_proc_data"),
 }
 
@@ -54,17 +57,44 @@ def profile_steps(n_envs: int, warmup: int, steps: int) -> dict[str, float]:
     for _ in range(warmup):
         _, td = env.step_and_maybe_reset(env.rand_action(td))
     prof = cProfile.Profile()
-    prof.enable()
-    for _ in range(steps):
-        _, td = env.step_and_maybe_reset(env.rand_action(td))
-    prof.disable()
+    with _record_belief_updates() as updates:
+        prof.enable()
+        for _ in range(steps):
+            _, td = env.step_and_maybe_reset(env.rand_action(td))
+        prof.disable()
     stats = pstats.Stats(prof).stats
     out = {}
     for label, (suffix, func) in PHASES.items():
         cum = sum(v[3] for (file, _, name), v in stats.items()
                   if name == func and file.endswith(suffix))
         out[label] = 1000 * cum / steps
+    counts = torch.cat([c for c, _ in updates]) if updates else torch.zeros(1)
+    out["beliefs updated per step (count)"] = len(counts) / steps
+    out["  their mean measurement count (count)"] = float(counts.float().mean())
+    out["  the count a padded product gives them, mean (count)"] = sum(
+        len(n) * h for n, h in updates) / max(len(counts), 1) if updates else 0.0
     return out
+
+
+@contextlib.contextmanager
+def _record_belief_updates():
+    """While open, each ``GPBelief.add`` call appends (counts of the beliefs that take
+    points, the largest of them): a product padded per call streams the largest for
+    every belief, the used-row product only each one's own."""
+    calls, add = [], GPBelief.add
+
+    def recording(self, prior, query, x, y, mask):
+        taking = mask.reshape(-1, mask.shape[-1]).any(-1)
+        n = self.count.reshape(-1)[taking]
+        if n.numel():
+            calls.append((n, int(n.max())))
+        return add(self, prior, query, x, y, mask)
+
+    GPBelief.add = recording
+    try:
+        yield calls
+    finally:
+        GPBelief.add = add
 
 
 def gather_costs(s: int, e: int, h: int, q: int, p: int, repeats: int) -> dict[str, float]:
@@ -143,8 +173,8 @@ def main() -> None:
     torch.set_num_threads(1)
     print(f"profile: E={args.envs}, {args.steps} steps after {args.warmup} (cProfile "
           f"overhead included), ms per step")
-    for label, ms in profile_steps(args.envs, args.warmup, args.steps).items():
-        print(f"  {label:48s} {ms:8.1f}")
+    for label, v in profile_steps(args.envs, args.warmup, args.steps).items():
+        print(f"  {label.removesuffix(' (count)'):48s} {v:8.1f}")
     s, h, pts = args.gather
     print(f"gather: S={s} of E={args.envs} beliefs, h={h}, Q=1101, P={pts}, ms per call")
     for label, ms in gather_costs(s, args.envs, h, 1101, pts, 10).items():
