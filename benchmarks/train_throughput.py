@@ -68,7 +68,8 @@ def main() -> None:
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     env_cfg = MAIPPConfig.from_dict(OmegaConf.to_container(cfg.env))
-    learner = build_learner(cfg.algo, env_cfg.node_encoding_dim, env_cfg.interest_threshold)
+    learner = build_learner(cfg.algo, env_cfg.node_encoding_dim, env_cfg.interest_threshold,
+                            cfg.device)
     optim = torch.optim.Adam(learner.parameters(), lr=cfg.algo.lr)
     _, collector, buffer = train_mod.make_collection(cfg, env_cfg, learner)
     times = {"collect": 0.0, "decisions": 0.0, "learn": 0.0}

@@ -146,8 +146,8 @@ def make_env(env_cfg: MAIPPConfig, n_envs: int, hidden_dim: int, device: str) ->
 def _bootstrap(learner: Learner, last: TensorDict) -> torch.Tensor:
     """``[E, m]``: every agent's value after the batch's last step."""
     e, m = last.get(("agents", "deciding")).shape
-    e_idx = torch.arange(e).repeat_interleave(m)
-    a_idx = torch.arange(m).repeat(e)
+    e_idx = torch.arange(e, device=last.device).repeat_interleave(m)
+    a_idx = torch.arange(m, device=last.device).repeat(e)
     rows = decision_rows(last, e_idx, a_idx, last.get(HIDDEN_KEY))
     with torch.no_grad():
         if learner.critic is not None:
@@ -166,7 +166,7 @@ def make_collection(cfg: Any, env_cfg: MAIPPConfig, learner: Learner
     collector = Collector(env, policy, frames_per_batch=cfg.n_envs * cfg.steps_per_batch,
                           total_frames=-1, auto_register_policy_transforms=False)
     buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.n_envs * cfg.steps_per_batch
-                                                    * env_cfg.n_agents),
+                                                    * env_cfg.n_agents, device=cfg.device),
                           sampler=SamplerWithoutReplacement(), batch_size=cfg.algo.minibatch)
     return env, collector, buffer
 
@@ -215,7 +215,9 @@ def heldout_rows(core: Any, env_cfg: MAIPPConfig, episodes: int, budget: float,
     the protocol's) at a fixed ``budget``: one result row per episode."""
     seeds = [HELDOUT_SEED_BASE + i for i in range(episodes)]
     eval_cfg = env_cfg.replace(budget=budget, budget_min=0.0, node_encoding_dim=0)
-    return run_chunk(method, eval_cfg, seeds, trial_seed=HELDOUT_SEED_BASE, core=core)
+    device = next(core.parameters()).device  # where the network is, the episodes run
+    return run_chunk(method, eval_cfg, seeds, trial_seed=HELDOUT_SEED_BASE, device=device,
+                     core=core)
 
 
 def eval_spec(cfg: Any) -> tuple[MethodSpec, list[float]]:
@@ -306,7 +308,8 @@ def train(cfg: Any, run_dir: Path) -> Path:
     assert not protocol_seeds & {HELDOUT_SEED_BASE + i for i in range(cfg.eval_episodes)}
 
     torch.manual_seed(cfg.seed)  # the network's initial weights
-    learner = build_learner(cfg.algo, env_cfg.node_encoding_dim, env_cfg.interest_threshold)
+    learner = build_learner(cfg.algo, env_cfg.node_encoding_dim, env_cfg.interest_threshold,
+                            cfg.device)
     optim = torch.optim.Adam(learner.parameters(), lr=cfg.algo.lr)
     sched = torch.optim.lr_scheduler.StepLR(optim, cfg.algo.lr_decay_every, cfg.algo.lr_decay)
     ckpt_path = run_dir / "checkpoint.pt"

@@ -377,3 +377,24 @@ def test_eval_tag_names_what_a_score_measures():
     # rows written before tags existed: greedy at the eval_budget of their run
     assert row_tag({"eval/trace": 1.0}, {"config": {"eval_budget": 4.0}}) == "greedy@4"
     assert row_tag({"eval/tag": "ours_ti@2,3"}, {}) == "ours_ti@2,3"
+
+
+@pytest.mark.cuda
+@pytest.mark.parametrize("algo", ["ours", "catnipp", "mappo"])
+def test_training_and_ti_run_on_cuda(algo, tmp_path):
+    """One update on CUDA (collector, loss, checkpoint), then the trained network plays TI
+    episodes there: finite losses, valid episodes."""
+    if not torch.cuda.is_available():
+        pytest.skip("CUDA is not available")
+    from maipp_bench.train import train
+
+    path = train(compose_train(*TINY_TRAIN, f"algo={algo}", "total_updates=1", "device=cuda"),
+                 tmp_path)
+    row = torch.load(path, weights_only=False, map_location="cpu")["curve"][0]
+    assert np.isfinite(row["loss_objective"]) and np.isfinite(row["loss_critic"])
+    cfg = MAIPPConfig(n_agents=2, budget=1.0, n_nodes=40, k_neighbors=8)
+    spec = algos.MethodSpec(name="tiny_ti", policy="attention", models_risk=True, learned=True,
+                            params={"mode": "ti", "rollouts": 3, "depth": 2})
+    rows = run_chunk(spec, cfg, [11, 12], trial_seed=5, checkpoint=str(path), device="cuda")
+    for r in rows:
+        assert r["distance"] <= cfg.team_budget + 1e-9 and 0 < r["trace"] <= 900

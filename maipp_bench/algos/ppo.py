@@ -130,14 +130,18 @@ class Learner:
         return list(self.loss.parameters())
 
 
-def build_learner(algo: Any, pe_dim: int, threshold: float) -> Learner:
-    """Network, actor, critic and loss of an algo config (errors list the valid names)."""
+def build_learner(algo: Any, pe_dim: int, threshold: float,
+                  device: str | torch.device = "cpu") -> Learner:
+    """Network, actor, critic and loss of an algo config (errors list the valid names), with
+    the network on ``device`` before the loss takes its parameters."""
     for kind, name, table in (("critic", algo.critic, CRITICS), ("loss", algo.loss, LOSSES)):
         if name not in table:
             raise ValueError(f"algo.{kind}={name!r}; valid: {sorted(table)}")
-    core = AttentionCore(algo.feature_set, net_config(algo, pe_dim), threshold)
+    core = AttentionCore(algo.feature_set, net_config(algo, pe_dim), threshold).to(device)
     actor = decision_actor(core)
     critic = CRITICS[algo.critic](algo, core)
+    if critic is not None:
+        critic = critic.to(device)
     loss = LOSSES[algo.loss](algo, actor, critic)
     loss.set_keys(sample_log_prob=LOG_PROB_KEY)
     return Learner(core, actor, critic, loss)

@@ -526,8 +526,8 @@ class MAIPPEnv(EnvBase):
     def _log_measurements(self, st, pts, agent, valid, times) -> None:
         """Append noisy measurements ``pts [E, P, 2]`` to the team log; discover evidence."""
         cfg = self.config
-        # A fifth of the envs measure at a step: evaluate fields, noise and detection there
-        # only (every value is computed per point, so the same bits as over all E).
+        # About a quarter of the envs measure at a step: evaluate fields, noise and detection
+        # there only (every value is computed per point, so the same bits as over all E).
         sel = valid.any(-1).nonzero().squeeze(-1)
         if sel.numel() == 0:
             return
@@ -715,6 +715,7 @@ class MAIPPEnv(EnvBase):
             terminated=terminated.unsqueeze(-1).clone(),
             truncated=truncated.unsqueeze(-1).clone(),
             batch_size=bs,
+            device=self.device,  # transforms make their reset masks on the data's device
         )
         if cfg.node_encoding_dim:
             out.set("node_encoding", st.node_encoding.clone())
