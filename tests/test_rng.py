@@ -66,3 +66,13 @@ def test_randint_inclusive_range():
     assert int(r.min()) == 8 and int(r.max()) == 12
     freq = torch.bincount(r - 8, minlength=5).double() / N
     assert torch.all((freq - 0.2).abs() < 0.01)
+
+
+def test_integer_tags_mix_to_the_bits_of_tensor_tags():
+    """derive() mixes a Python-int tag without tensors: the same bits as a tensor tag."""
+    values = [0, 1, -1, 7, 2**62, -(2**63), 2**63 - 1, 123456789012345]
+    assert [rng.mix_int(v) for v in values] == rng.mix(torch.tensor(values)).tolist()
+    key = rng.seed_key(5)
+    keys = rng.derive(key, torch.arange(4))
+    for tag in values:
+        assert torch.equal(rng.derive(keys, tag), rng.derive(keys, torch.tensor(tag)))

@@ -45,6 +45,13 @@ def pairwise_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Euclidean distances between point sets ``a [..., P, 2]`` and ``b [..., Q, 2]``.
 
     Computed from coordinate differences (not the |a|^2 + |b|^2 - 2ab expansion) so that
-    duplicate points give exactly zero, which the exactness tests rely on.
+    duplicate points give exactly zero, which the exactness tests rely on. On CUDA the
+    differences are written out: ``cdist``'s CUDA kernel reduces each pair with a thread
+    block, which took 60% of a step's device time at E = 16384 for these 2-D points
+    (``benchmarks/cuda_profile.py``). The CPU keeps ``cdist``, whose bits the committed
+    leaderboards hold.
     """
+    if a.is_cuda:
+        d = a.unsqueeze(-2) - b.unsqueeze(-3)  # [..., P, Q, 2]
+        return d.square().sum(-1).sqrt()
     return torch.cdist(a, b, compute_mode="donot_use_mm_for_euclid_dist")

@@ -9,6 +9,7 @@ logical shifts emulated with masks).
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -37,12 +38,26 @@ def mix(x: torch.Tensor) -> torch.Tensor:
     return z ^ _shr(z, 31)
 
 
+_MASK64 = (1 << 64) - 1
+
+
+def mix_int(x: int) -> int:
+    """:func:`mix` of one Python integer, as the int64 it gives (the same bits, no tensor:
+    a constant tag costs no device work)."""
+    z = (x + _GOLDEN) & _MASK64
+    z = ((z ^ (z >> 30)) * _M1) & _MASK64
+    z = ((z ^ (z >> 27)) * _M2) & _MASK64
+    return _u64(z ^ (z >> 31))
+
+
 def derive(key: torch.Tensor, *tags: int | torch.Tensor) -> torch.Tensor:
     """A child key for each tag sequence (tags broadcast against ``key``)."""
     out = key
     for tag in tags:
-        t = tag if isinstance(tag, torch.Tensor) else torch.tensor(tag, dtype=torch.int64)
-        out = mix(out ^ mix(t.to(device=key.device, dtype=torch.int64)))
+        if isinstance(tag, torch.Tensor):
+            out = mix(out ^ mix(tag.to(device=key.device, dtype=torch.int64)))
+        else:
+            out = mix(out ^ mix_int(tag))
     return out
 
 
@@ -50,10 +65,15 @@ def seed_key(seed: int, device: torch.device | str = "cpu") -> torch.Tensor:
     return mix(torch.tensor(seed, dtype=torch.int64, device=device))
 
 
+@functools.lru_cache(maxsize=64)
+def _mixed_counters(n: int, device: torch.device) -> torch.Tensor:
+    """``mix(arange(n))``: the same for every draw of n numbers, so made once per device."""
+    return mix(torch.arange(n, dtype=torch.int64, device=device))
+
+
 def _counters(key: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
-    n = math.prod(shape)
-    idx = torch.arange(n, dtype=torch.int64, device=key.device).view(shape)
-    return mix(key.view(*key.shape, *([1] * len(shape))) ^ mix(idx))
+    mixed = _mixed_counters(math.prod(shape), key.device).view(shape)
+    return mix(key.view(*key.shape, *([1] * len(shape))) ^ mixed)
 
 
 def uniform(key: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
