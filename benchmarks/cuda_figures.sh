@@ -1,0 +1,58 @@
+#!/usr/bin/env bash
+# The CUDA figures of docs/performance.md, in one call on a GPU machine:
+#   bash benchmarks/cuda_figures.sh OUT_DIR [SECTION ...]
+# Sections (default: all): check, env32, env64, profile, train. Each writes JSON and a log to OUT_DIR; a
+# section that fails is reported and the next one still runs.
+# - check: the CUDA tests (the env's rollout on CUDA against the CPU's).
+# - env32, env64: benchmarks/env_throughput.py on CUDA in float32 / float64, for each E
+#   of $ENVS (default 1024 4096 16384 32768).
+# - profile: benchmarks/cuda_profile.py at E = 16384.
+# - train: benchmarks/train_throughput.py on CUDA for algo=ours and algo=mappo.
+# Needs maipp_bench's dependencies importable (on a machine without network, install
+# wheels first: docs/performance.md gives the command used).
+set -u
+out=${1:?usage: cuda_figures.sh OUT_DIR [SECTION ...]}
+shift
+sections=${*:-check env32 env64 profile train}
+mkdir -p "$out"
+export PYTHONUNBUFFERED=1
+py=${PYTHON:-python3}
+
+run() {  # run NAME CMD...: tee the log, report failure, go on
+    local name=$1
+    shift
+    echo "=== $name: $*"
+    local t0=$SECONDS
+    if "$@" > >(tee "$out/$name.log") 2>&1; then
+        echo "=== $name ok ($((SECONDS - t0)) s)"
+    else
+        echo "=== $name FAILED ($((SECONDS - t0)) s)"
+    fi
+}
+
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$out/gpu.txt"
+$py -c "import torch, torchrl, tensordict; print('torch', torch.__version__, 'torchrl', \
+torchrl.__version__, 'tensordict', tensordict.__version__, torch.cuda.get_device_name())" \
+    | tee -a "$out/gpu.txt"
+
+for s in $sections; do
+    case $s in
+    check)
+        run check_cuda $py -m pytest -q -p no:cacheprovider -m cuda tests ;;
+    env32 | env64)  # one process per E: a batch too large for the card fails alone
+        dt=float${s#env}
+        for e in ${ENVS:-1024 4096 16384 32768}; do
+            run "env_${dt}_$e" $py benchmarks/env_throughput.py --device cuda --dtype $dt \
+                --envs $e --warmup 150 --steps 100 --ref-steps 150 --repeats 3 \
+                --out "$out/env_${dt}_$e.json"
+        done ;;
+    profile)
+        run profile sh -c "cd benchmarks && $py cuda_profile.py --envs 16384 --out $out/profile.txt" ;;
+    train)
+        for algo in ours mappo; do
+            run "train_$algo" $py benchmarks/train_throughput.py algo=$algo device=cuda \
+                n_envs=64 --updates 3 --out "$out/train_$algo.json"
+        done ;;
+    *) echo "unknown section $s" ;;
+    esac
+done
