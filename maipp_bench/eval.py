@@ -22,6 +22,7 @@ import torch
 from tqdm import tqdm
 
 from maipp_bench import algos
+from maipp_bench.envs.config import check_device
 from maipp_bench.protocol import leaderboard
 from maipp_bench.protocol.protocol import file_sha256, load_protocol
 from maipp_bench.protocol.runner import run_chunk
@@ -53,7 +54,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="torch threads per process (default 1: the batched tensors are small, "
                         "and contended OpenMP threads slow them down many times)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    try:
+        check_device(args.device, "--device")
+    except ValueError as err:
+        p.error(str(err))
+    return args
 
 
 def _run_chunk(method: str, cfg, insts: list[int], trial: int, device: str,

@@ -44,7 +44,7 @@ from maipp_bench.algos.modules import HIDDEN_KEY, TeamPolicy, decision_rows
 from maipp_bench.algos.ppo import AlgoConfig, Learner, build_learner
 from maipp_bench.algos.registry import MethodSpec, get_method
 from maipp_bench.envs import rng
-from maipp_bench.envs.config import MAIPPConfig
+from maipp_bench.envs.config import MAIPPConfig, check_device
 from maipp_bench.envs.maipp_env import MAIPPEnv
 from maipp_bench.protocol.protocol import load_protocol
 from maipp_bench.protocol.runner import run_chunk
@@ -297,6 +297,7 @@ def _commit() -> str:
 def train(cfg: Any, run_dir: Path) -> Path:
     """Train the configured method into ``run_dir``; returns the checkpoint path."""
     torch.set_num_threads(cfg.threads)
+    check_device(cfg.device)
     env_cfg = MAIPPConfig.from_dict(OmegaConf.to_container(cfg.env))
     if env_cfg.node_encoding_dim < 1:
         raise ValueError("env.node_encoding_dim must be >= 1: the network reads the "

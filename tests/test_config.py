@@ -145,3 +145,15 @@ def test_numpy_scalars_are_accepted_as_python_numbers():
     assert type(cfg.n_agents) is int and type(cfg.length_scale) is type(cfg.budget) is float
     with pytest.raises(ValueError, match="n_agents"):
         MAIPPConfig(n_agents=np.float64(2.0))
+
+
+def test_bad_devices_are_clear_errors(monkeypatch):
+    from maipp_bench.envs.config import check_device
+
+    assert check_device("cpu") == torch.device("cpu")
+    for bad in ("gpu", "mps", 3.5):
+        with pytest.raises(ValueError, match=r"device=.* is invalid: expected 'cpu', 'cuda'"):
+            MAIPPEnv(MAIPPConfig(), batch_size=[1], device=bad)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ValueError, match="CUDA is not available here"):
+        check_device("cuda", "device")

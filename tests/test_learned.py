@@ -177,6 +177,7 @@ def test_missing_checkpoint_and_bad_mode_are_clear_errors(tiny_checkpoint):
     ("n_envs=many", "n_envs"),
     ("algo.lr=fast", "algo.lr"),
     ("env.budget=-1", "MAIPPConfig.budget"),
+    ("device=gpu", "device='gpu' is invalid"),
 ])
 def test_bad_overrides_get_clear_errors(override, message, tmp_path):
     proc = subprocess.run(

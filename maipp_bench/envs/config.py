@@ -231,3 +231,23 @@ class MAIPPConfig:
 
 def _bad(name: str, value: Any, allowed: str) -> None:
     raise ValueError(f"MAIPPConfig.{name}={value!r} is invalid: expected {allowed}")
+
+
+def check_device(device: str | torch.device, what: str = "device") -> torch.device:
+    """``device`` as a ``torch.device``; a ``ValueError`` naming ``what`` when it is not a
+    CPU or CUDA device, or CUDA is not available here (torch's own errors name neither
+    the option nor the remedy)."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        dev = None
+    if dev is None or dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"{what}={device!r} is invalid: expected 'cpu', 'cuda' or 'cuda:N'")
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"{what}={device!r}: CUDA is not available here (torch "
+                             f"{torch.__version__}); use 'cpu'")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(f"{what}={device!r}: only {torch.cuda.device_count()} CUDA "
+                             f"device(s) here")
+    return dev

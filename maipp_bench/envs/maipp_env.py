@@ -17,7 +17,7 @@ from torchrl.envs import EnvBase
 
 from maipp_bench.envs import rng
 from maipp_bench.envs.belief import GPBelief, GPPrior, interest_trace
-from maipp_bench.envs.config import MAIPPConfig
+from maipp_bench.envs.config import MAIPPConfig, check_device
 from maipp_bench.envs.dynamics import EPS, edge_points, reachability, sample_offsets
 from maipp_bench.envs.intent import check_intent, intent_feature
 from maipp_bench.envs.roadmap import Roadmap, build_roadmap, laplacian_encoding
@@ -142,7 +142,7 @@ class MAIPPEnv(EnvBase):
             raise ValueError(
                 f"MAIPPEnv: batch_size must be [E] with E >= 1, got {list(batch_size)}"
             )
-        super().__init__(device=device, batch_size=batch_size)
+        super().__init__(device=check_device(device, "MAIPPEnv device"), batch_size=batch_size)
         self.config = cfg
         self.prior = GPPrior(cfg.kernel, cfg.length_scale, cfg.prior_variance,
                              cfg.gp_noise_variance)
