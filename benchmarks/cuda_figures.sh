@@ -3,11 +3,11 @@
 #   bash benchmarks/cuda_figures.sh OUT_DIR [SECTION ...]
 # Sections (default: all): check, env32, env64, profile, train. Each writes JSON and a log to OUT_DIR; a
 # section that fails is reported and the next one still runs.
-# - check: the CUDA tests (the env's rollout on CUDA against the CPU's).
+# - check: the CUDA tests (`pytest -m cuda`: the env, every method, training on CUDA).
 # - env32, env64: benchmarks/env_throughput.py on CUDA in float32 / float64, for each E
 #   of $ENVS (default 1024 4096 16384 32768).
 # - profile: benchmarks/cuda_profile.py at E = 16384.
-# - train: benchmarks/train_throughput.py on CUDA for algo=ours and algo=mappo.
+# - train: benchmarks/train_throughput.py on CUDA: ours at 64 and 256 envs, mappo at 64.
 # Needs maipp_bench's dependencies importable (on a machine without network, install
 # wheels first: docs/performance.md gives the command used).
 set -u
@@ -47,11 +47,12 @@ for s in $sections; do
                 --out "$out/env_${dt}_$e.json"
         done ;;
     profile)
-        run profile sh -c "cd benchmarks && $py cuda_profile.py --envs 16384 --out $out/profile.txt" ;;
+        run profile $py benchmarks/cuda_profile.py --envs 16384 --out "$out/profile.txt" ;;
     train)
-        for algo in ours mappo; do
-            run "train_$algo" $py benchmarks/train_throughput.py algo=$algo device=cuda \
-                n_envs=64 --updates 3 --out "$out/train_$algo.json"
+        for job in "ours 64 3" "ours 256 2" "mappo 64 2"; do  # algo, n_envs, timed updates
+            set -- $job
+            run "train_$1_$2" $py benchmarks/train_throughput.py algo=$1 device=cuda \
+                n_envs=$2 --updates $3 --out "$out/train_$1_$2.json"
         done ;;
     *) echo "unknown section $s" ;;
     esac

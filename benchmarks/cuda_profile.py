@@ -5,9 +5,9 @@ E envs under a random masked policy with auto-reset, warmed up to the steady sta
 1. wall milliseconds per step of the phases of ``env_profile.PHASES`` (``cProfile``; on
    CUDA a phase that waits for the device, e.g. at a ``nonzero`` or ``.item()``, is
    charged the wait);
-2. ``torch.profiler`` over the same number of steps: kernel launches and host-device
-   synchronisations per step, device busy time per step, and the operators with the most
-   host time and the most device time.
+2. ``torch.profiler`` over the same number of steps: kernel launches, host-device copies
+   and synchronize calls per step, device busy time per step (the kernels' time), and the
+   operators with the most host time and the most device time.
 
 Usage:
     python benchmarks/cuda_profile.py --envs 1024 4096 --out profile.txt
@@ -72,12 +72,14 @@ def report(n_envs: int, warmup: int, steps: int, dtype: str, device: str) -> str
     events = tp.key_averages()
     launches = sum(e.count for e in events if e.key in ("cudaLaunchKernel",
                                                         "cudaLaunchKernelExC"))
-    syncs = sum(e.count for e in events if "Synchronize" in e.key
-                or e.key in ("cudaMemcpyAsync", "cudaStreamSynchronize"))
-    device_us = sum(e.self_device_time_total for e in events)
+    copies = sum(e.count for e in events if e.key == "cudaMemcpyAsync")
+    syncs = sum(e.count for e in events if "Synchronize" in e.key)
+    # Kernels only: an operator's row repeats the device time of the kernels it launched.
+    device_us = sum(e.self_device_time_total for e in events
+                    if e.device_type == torch.autograd.DeviceType.CUDA)
     lines.append(f"  torch.profiler: {launches / steps:.0f} kernel launches, "
-                 f"{syncs / steps:.0f} memcpy/sync calls, {device_us / 1000 / steps:.1f} ms "
-                 f"of device time per step")
+                 f"{copies / steps:.0f} cudaMemcpyAsync, {syncs / steps:.0f} synchronize calls, "
+                 f"{device_us / 1000 / steps:.1f} ms of device time per step")
     for key in ("self_cpu_time_total", "self_device_time_total"):
         lines.append(events.table(sort_by=key, row_limit=25, max_name_column_width=50))
     return "\n".join(lines)

@@ -35,7 +35,9 @@ def test_method_plays_valid_episodes(name, comm_range, tiny_checkpoint):
 @pytest.mark.parametrize("name", algos.method_names())
 def test_method_plays_the_same_episodes_on_cuda(name, tiny_checkpoint):
     """``eval --device cuda``: every method runs there and plays the CPU's episodes (same
-    decisions; floating-point results to rounding)."""
+    decisions; floating-point results to rounding). SGA-RRT only plays valid ones: its
+    tree search ranks paths by float gains, and CUDA's rounding flips near ties (its
+    protocol rows differ on CUDA: docs/performance.md)."""
     if not torch.cuda.is_available():
         pytest.skip("CUDA is not available")
     cfg = MAIPPConfig(**SMALL, comm_range=0.3)
@@ -44,9 +46,10 @@ def test_method_plays_the_same_episodes_on_cuda(name, tiny_checkpoint):
     cpu, gpu = (run_chunk(spec, cfg, [11, 12], trial_seed=5, device=d, **kwargs)
                 for d in ("cpu", "cuda"))
     for a, b in zip(cpu, gpu):
-        assert b["distance"] <= cfg.team_budget + 1e-9
-        assert a["steps"] == b["steps"] and a["measurements"] == b["measurements"], (a, b)
-        assert b["trace"] == pytest.approx(a["trace"], rel=1e-6)
+        assert b["distance"] <= cfg.team_budget + 1e-9 and 0 < b["trace"] <= 900
+        if spec.policy != "sga_rrt":
+            assert a["steps"] == b["steps"] and a["measurements"] == b["measurements"], (a, b)
+            assert b["trace"] == pytest.approx(a["trace"], rel=1e-6)
 
 
 def test_risk_unaware_methods_get_the_pruned_roadmap_unless_their_yaml_says_otherwise():

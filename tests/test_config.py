@@ -154,6 +154,10 @@ def test_bad_devices_are_clear_errors(monkeypatch):
     for bad in ("gpu", "mps", 3.5):
         with pytest.raises(ValueError, match=r"device=.* is invalid: expected 'cpu', 'cuda'"):
             MAIPPEnv(MAIPPConfig(), batch_size=[1], device=bad)
-    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 0)
     with pytest.raises(ValueError, match="CUDA is not available here"):
         check_device("cuda", "device")
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    assert check_device("cuda:0") == torch.device("cuda", 0)
+    with pytest.raises(ValueError, match="only 1 CUDA device"):
+        check_device("cuda:1", "--device")

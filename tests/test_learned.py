@@ -383,16 +383,17 @@ def test_eval_tag_names_what_a_score_measures():
 @pytest.mark.cuda
 @pytest.mark.parametrize("algo", ["ours", "catnipp", "mappo"])
 def test_training_and_ti_run_on_cuda(algo, tmp_path):
-    """One update on CUDA (collector, loss, checkpoint), then the trained network plays TI
-    episodes there: finite losses, valid episodes."""
+    """One update on CUDA (collector, loss, held-out evaluation, checkpoint), then the
+    trained network plays TI episodes there: finite losses, valid episodes."""
     if not torch.cuda.is_available():
         pytest.skip("CUDA is not available")
     from maipp_bench.train import train
 
-    path = train(compose_train(*TINY_TRAIN, f"algo={algo}", "total_updates=1", "device=cuda"),
-                 tmp_path)
+    path = train(compose_train(*TINY_TRAIN, f"algo={algo}", "total_updates=1", "device=cuda",
+                               "eval_every=1", "eval_episodes=2"), tmp_path)
     row = torch.load(path, weights_only=False, map_location="cpu")["curve"][0]
     assert np.isfinite(row["loss_objective"]) and np.isfinite(row["loss_critic"])
+    assert 0 < row["eval/trace"] <= 900
     cfg = MAIPPConfig(n_agents=2, budget=1.0, n_nodes=40, k_neighbors=8)
     spec = algos.MethodSpec(name="tiny_ti", policy="attention", models_risk=True, learned=True,
                             params={"mode": "ti", "rollouts": 3, "depth": 2})

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import numpy as np
+import pytest
 import torch
 
 from maipp_bench.envs import rng
@@ -76,3 +78,6 @@ def test_integer_tags_mix_to_the_bits_of_tensor_tags():
     keys = rng.derive(key, torch.arange(4))
     for tag in values:
         assert torch.equal(rng.derive(keys, tag), rng.derive(keys, torch.tensor(tag)))
+    assert torch.equal(rng.derive(keys, np.int64(7)), rng.derive(keys, 7))
+    with pytest.raises(OverflowError, match="int64"):
+        rng.derive(keys, 2**63)

@@ -244,10 +244,12 @@ def check_device(device: str | torch.device, what: str = "device") -> torch.devi
     if dev is None or dev.type not in ("cpu", "cuda"):
         raise ValueError(f"{what}={device!r} is invalid: expected 'cpu', 'cuda' or 'cuda:N'")
     if dev.type == "cuda":
-        if not torch.cuda.is_available():
+        # device_count asks NVML and leaves CUDA uninitialised (is_available initialises
+        # it), so processes forked later, e.g. eval's workers, can still use CUDA.
+        count = torch.cuda.device_count()
+        if count == 0:
             raise ValueError(f"{what}={device!r}: CUDA is not available here (torch "
                              f"{torch.__version__}); use 'cpu'")
-        if dev.index is not None and dev.index >= torch.cuda.device_count():
-            raise ValueError(f"{what}={device!r}: only {torch.cuda.device_count()} CUDA "
-                             f"device(s) here")
+        if dev.index is not None and dev.index >= count:
+            raise ValueError(f"{what}={device!r}: only {count} CUDA device(s) here")
     return dev

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import math
+import operator
 
 import torch
 
@@ -44,6 +45,8 @@ _MASK64 = (1 << 64) - 1
 def mix_int(x: int) -> int:
     """:func:`mix` of one Python integer, as the int64 it gives (the same bits, no tensor:
     a constant tag costs no device work)."""
+    if not -(1 << 63) <= x < (1 << 63):
+        raise OverflowError(f"RNG tag {x} does not fit in int64")
     z = (x + _GOLDEN) & _MASK64
     z = ((z ^ (z >> 30)) * _M1) & _MASK64
     z = ((z ^ (z >> 27)) * _M2) & _MASK64
@@ -57,7 +60,7 @@ def derive(key: torch.Tensor, *tags: int | torch.Tensor) -> torch.Tensor:
         if isinstance(tag, torch.Tensor):
             out = mix(out ^ mix(tag.to(device=key.device, dtype=torch.int64)))
         else:
-            out = mix(out ^ mix_int(tag))
+            out = mix(out ^ mix_int(operator.index(tag)))  # numpy integers too
     return out
 
 
