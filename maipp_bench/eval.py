@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import os
 import shlex
 import sys
@@ -192,7 +193,11 @@ def main(argv: list[str] | None = None) -> dict:
                 bar.close()
                 os._exit(3)  # simulate a hard kill (tests of resumption)
     else:
-        with ProcessPoolExecutor(max_workers=args.workers) as pool:
+        # CUDA cannot be used in forked children once a parent touched it: spawn them.
+        spawn = torch.device(args.device).type == "cuda"
+        with ProcessPoolExecutor(max_workers=args.workers,
+                                 mp_context=multiprocessing.get_context("spawn") if spawn
+                                 else None) as pool:
             futures = {pool.submit(_run_chunk, *job): chunk for chunk, job in zip(chunks, jobs)}
             for n_done, fut in enumerate(as_completed(futures), 1):
                 method, setting, trial, _ = futures[fut]
