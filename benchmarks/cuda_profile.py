@@ -22,24 +22,12 @@ import time
 from pathlib import Path
 
 import torch
-from env_profile import PHASES
+from env_profile import phase_ms, steady_env
 from torch.profiler import ProfilerActivity, profile
-
-from maipp_bench.envs import MAIPPConfig, MAIPPEnv
-
-
-def steady_env(n_envs: int, warmup: int, dtype: str, device: str) -> tuple[MAIPPEnv, object]:
-    env = MAIPPEnv(MAIPPConfig(budget=3.0, dtype=dtype), batch_size=[n_envs], device=device)
-    env.set_seed(0)
-    td = env.reset()
-    for _ in range(warmup):
-        _, td = env.step_and_maybe_reset(env.rand_action(td))
-    torch.cuda.synchronize()
-    return env, td
 
 
 def report(n_envs: int, warmup: int, steps: int, dtype: str, device: str) -> str:
-    env, td = steady_env(n_envs, warmup, dtype, device)
+    env, td = steady_env(n_envs, warmup, dtype=dtype, device=device)
     lines = [f"E={n_envs} {dtype} on {torch.cuda.get_device_name()}, {steps} steps after "
              f"{warmup}"]
     t0 = time.perf_counter()
@@ -54,12 +42,9 @@ def report(n_envs: int, warmup: int, steps: int, dtype: str, device: str) -> str
         _, td = env.step_and_maybe_reset(env.rand_action(td))
     torch.cuda.synchronize()
     prof.disable()
-    stats = pstats.Stats(prof).stats
     lines.append("  cProfile, cumulative wall ms per step:")
-    for label, (suffix, func) in PHASES.items():
-        cum = sum(v[3] for (file, _, name), v in stats.items()
-                  if name == func and file.endswith(suffix))
-        lines.append(f"    {label:52s} {1000 * cum / steps:8.1f}")
+    lines += [f"    {label:52s} {ms:8.1f}" for label, ms in phase_ms(prof, steps).items()]
+    stats = pstats.Stats(prof).stats
     top = sorted(((v[2], f"{Path(f).name}:{ln} {n}") for (f, ln, n), v in stats.items()),
                  reverse=True)[:25]
     lines.append("  cProfile, top self time (ms per step):")

@@ -32,6 +32,7 @@ import time
 import torch
 import torch.nn.functional as F
 from bench_timing import seconds_per_call
+from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
 from maipp_bench.envs import MAIPPConfig, MAIPPEnv
@@ -49,25 +50,39 @@ PHASES = {  # label -> (file suffix, function name) as cProfile names them
 }
 
 
-def profile_steps(n_envs: int, warmup: int, steps: int) -> dict[str, float]:
-    """Milliseconds per step of each phase (cumulative time), steady state."""
-    env = MAIPPEnv(MAIPPConfig(budget=3.0), batch_size=[n_envs])
+def steady_env(n_envs: int, warmup: int, cls: type[MAIPPEnv] = MAIPPEnv,
+               dtype: str = "float64", device: str = "cpu") -> tuple[MAIPPEnv, TensorDictBase]:
+    """E envs at B = 3 (seed 0) after ``warmup`` seeded random masked steps with
+    auto-reset, so that episodes of every age are in the batch; the env and its data."""
+    env = cls(MAIPPConfig(budget=3.0, dtype=dtype), batch_size=[n_envs], device=device)
     env.set_seed(0)
     td = env.reset()
+    torch.manual_seed(0)
     for _ in range(warmup):
         _, td = env.step_and_maybe_reset(env.rand_action(td))
+    if env.device.type == "cuda":
+        torch.cuda.synchronize()
+    return env, td
+
+
+def phase_ms(prof: cProfile.Profile, steps: int) -> dict[str, float]:
+    """Cumulative milliseconds per step of each of ``PHASES`` in a finished profile."""
+    stats = pstats.Stats(prof).stats
+    return {label: 1000 * sum(v[3] for (file, _, name), v in stats.items()
+                              if name == func and file.endswith(suffix)) / steps
+            for label, (suffix, func) in PHASES.items()}
+
+
+def profile_steps(n_envs: int, warmup: int, steps: int) -> dict[str, float]:
+    """Milliseconds per step of each phase (cumulative time), steady state."""
+    env, td = steady_env(n_envs, warmup)
     prof = cProfile.Profile()
     with _record_belief_updates() as updates:
         prof.enable()
         for _ in range(steps):
             _, td = env.step_and_maybe_reset(env.rand_action(td))
         prof.disable()
-    stats = pstats.Stats(prof).stats
-    out = {}
-    for label, (suffix, func) in PHASES.items():
-        cum = sum(v[3] for (file, _, name), v in stats.items()
-                  if name == func and file.endswith(suffix))
-        out[label] = 1000 * cum / steps
+    out = phase_ms(prof, steps)
     counts = torch.cat([c for c, _ in updates]) if updates else torch.zeros(1)
     out["beliefs updated per step (count)"] = len(counts) / steps
     out["  their mean measurement count (count)"] = float(counts.float().mean())
@@ -136,13 +151,7 @@ def merge_ab(n_envs: int, warmup: int, steps: int, repeats: int) -> dict[str, fl
     """Milliseconds per step with each merge (medians) and the median per-pair speed-up."""
     runs = {}
     for name, cls in (("MAIPPEnv merge", MAIPPEnv), ("TorchRL merge", TorchRLMergeEnv)):
-        env = cls(MAIPPConfig(budget=3.0), batch_size=[n_envs])
-        env.set_seed(0)
-        td = env.reset()
-        torch.manual_seed(0)
-        for _ in range(warmup):
-            _, td = env.step_and_maybe_reset(env.rand_action(td))
-        runs[name] = [env, td, []]
+        runs[name] = [*steady_env(n_envs, warmup, cls), []]
     for r in range(repeats):
         for run in runs.values():
             env, td, times = run

@@ -23,7 +23,9 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path.cwd()))  # the checkout run from, not an installed copy
+# The checkout run from, not an installed copy. Self-contained (not env_profile's
+# steady_env): it must import whatever an older checkout's package holds.
+sys.path.insert(0, str(Path.cwd()))
 import maipp_bench  # noqa: E402
 from maipp_bench.envs import MAIPPConfig, MAIPPEnv  # noqa: E402
 
