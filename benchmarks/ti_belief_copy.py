@@ -25,7 +25,7 @@ import platform
 import torch
 from bench_timing import seconds_per_call
 
-from maipp_bench.algos.learned import samples_per_edge
+from maipp_bench.algos.rollouts import samples_per_edge
 from maipp_bench.envs import MAIPPConfig, MAIPPEnv
 
 

@@ -23,6 +23,7 @@ import torch
 from tqdm import tqdm
 
 from maipp_bench import algos
+from maipp_bench.allocator import keep_freed_memory
 from maipp_bench.envs.config import check_device
 from maipp_bench.protocol import leaderboard
 from maipp_bench.protocol.protocol import file_sha256, load_protocol
@@ -65,6 +66,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def _run_chunk(method: str, cfg, insts: list[int], trial: int, device: str,
                threads: int, policy_kwargs: dict) -> list[dict]:
+    keep_freed_memory()  # a spawned worker starts with glibc's defaults
     torch.set_num_threads(threads)
     with torch.inference_mode():
         return run_chunk(algos.get_method(method), cfg, insts, trial, device=device,
@@ -91,6 +93,7 @@ def _checkpoints(pairs: list[str], methods: list[str]) -> dict[str, dict]:
 
 def main(argv: list[str] | None = None) -> dict:
     args = parse_args(argv)
+    keep_freed_memory()
     commit = leaderboard.git_commit()  # the code that computes this run's rows
     protocol = load_protocol(args.protocol_version)
     try:

@@ -38,11 +38,13 @@ from torchrl.data.replay_buffers import SamplerWithoutReplacement
 from torchrl.envs import Compose, TensorDictPrimer, Transform, TransformedEnv
 from tqdm import tqdm
 
-from maipp_bench.algos.checkpoint import FORMAT, atomic_save, export_policy
+from maipp_bench.algos.checkpoint import FORMAT, atomic_save, export_policy, load_core, resolve
 from maipp_bench.algos.decisions import decision_batch
 from maipp_bench.algos.modules import HIDDEN_KEY, TeamPolicy, decision_rows
 from maipp_bench.algos.ppo import AlgoConfig, Learner, build_learner
 from maipp_bench.algos.registry import MethodSpec, get_method
+from maipp_bench.algos.rollouts import IntentBroadcast
+from maipp_bench.allocator import keep_freed_memory
 from maipp_bench.envs import rng
 from maipp_bench.envs.config import MAIPPConfig, check_device
 from maipp_bench.envs.maipp_env import MAIPPEnv
@@ -93,6 +95,9 @@ class TrainConfig:
     eval_method: str = "greedy"
     eval_budgets: list[float] = field(default_factory=list)
     resume: str | None = None
+    # Start from this network's weights (a checkpoint or an exported policy, e.g. "ours"):
+    # fine-tuning, with a fresh optimizer and update count. Ignored when resuming.
+    init: str | None = None
     export: str | None = None  # at the end: write the policy file + JSON card here
     export_from: str = "best"  # best (lowest held-out eval Tr(P); else last) | last
     progress: bool = True
@@ -162,7 +167,10 @@ def make_collection(cfg: Any, env_cfg: MAIPPConfig, learner: Learner
     """The training env, its TorchRL collector (policy: the learner's TeamPolicy) and the
     replay buffer an update's decisions are sampled from."""
     env = make_env(env_cfg, cfg.n_envs, learner.core.hidden_dim, cfg.device)
-    policy = TeamPolicy(learner.actor, learner.critic, learner.core.hidden_dim)
+    algo = cfg.algo
+    intent = (IntentBroadcast(env.base_env, learner.core, algo.intent_rollouts,
+                              algo.intent_depth) if algo.intent_rollouts != 0 else None)
+    policy = TeamPolicy(learner.actor, learner.critic, learner.core.hidden_dim, intent)
     collector = Collector(env, policy, frames_per_batch=cfg.n_envs * cfg.steps_per_batch,
                           total_frames=-1, auto_register_policy_transforms=False)
     buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.n_envs * cfg.steps_per_batch
@@ -218,6 +226,17 @@ def heldout_rows(core: Any, env_cfg: MAIPPConfig, episodes: int, budget: float,
     device = next(core.parameters()).device  # where the network is, the episodes run
     return run_chunk(method, eval_cfg, seeds, trial_seed=HELDOUT_SEED_BASE, device=device,
                      core=core)
+
+
+def init_weights(learner: Learner, checkpoint: str, algo: Any) -> None:
+    """Load the network weights of ``checkpoint`` (path or shipped name) into ``learner``;
+    a network of another feature set or size is a ValueError naming both."""
+    core, payload = load_core(resolve(checkpoint), next(learner.core.parameters()).device)
+    theirs = (payload["algo"]["feature_set"], core.net.cfg)
+    ours = (algo.feature_set, learner.core.net.cfg)
+    if theirs != ours:
+        raise ValueError(f"init={checkpoint}: its network {theirs} is not this run's {ours}")
+    learner.core.load_state_dict(core.state_dict())
 
 
 def eval_spec(cfg: Any) -> tuple[MethodSpec, list[float]]:
@@ -311,6 +330,8 @@ def train(cfg: Any, run_dir: Path) -> Path:
     torch.manual_seed(cfg.seed)  # the network's initial weights
     learner = build_learner(cfg.algo, env_cfg.node_encoding_dim, env_cfg.interest_threshold,
                             cfg.device)
+    if cfg.init and not cfg.resume:
+        init_weights(learner, cfg.init, cfg.algo)
     optim = torch.optim.Adam(learner.parameters(), lr=cfg.algo.lr)
     sched = torch.optim.lr_scheduler.StepLR(optim, cfg.algo.lr_decay_every, cfg.algo.lr_decay)
     ckpt_path = run_dir / "checkpoint.pt"
@@ -441,6 +462,7 @@ def write_card(cfg: Any, source: Path, last: Path, out: Path) -> None:
 def main(cfg: Any) -> None:
     """Hydra entry point: the run folder is Hydra's output folder."""
     run_dir = Path(HydraConfig.get().runtime.output_dir)
+    keep_freed_memory()
     path = train(cfg, run_dir)
     print(f"checkpoint: {path}")
 

@@ -400,3 +400,57 @@ def test_training_and_ti_run_on_cuda(algo, tmp_path):
     rows = run_chunk(spec, cfg, [11, 12], trial_seed=5, checkpoint=str(path), device="cuda")
     for r in rows:
         assert r["distance"] <= cfg.team_budget + 1e-9 and 0 < r["trace"] <= 900
+
+
+@pytest.mark.parametrize("rollouts", [0, 2])
+def test_training_agents_broadcast_intents_when_asked(rollouts):
+    from maipp_bench.algos.ppo import build_learner
+    from maipp_bench.train import make_collection
+
+    cfg = compose_train(*TINY_TRAIN, f"algo.intent_rollouts={rollouts}", "algo.intent_depth=2")
+    env_cfg = MAIPPConfig.from_dict(dict(cfg.env))
+    torch.manual_seed(0)
+    learner = build_learner(cfg.algo, env_cfg.node_encoding_dim, env_cfg.interest_threshold)
+    env, collector, _ = make_collection(cfg, env_cfg, learner)
+    env.set_seed(0)
+    batch = next(iter(collector))
+    collector.shutdown()
+    intent = batch.get(("agents", "observation", "node_features"))[..., 5]  # NODE_FEATURES
+    if rollouts:
+        assert (intent > 0).any() and intent.max() <= 1.0 + 1e-6
+        # The executed actions are still the policy's samples: valid and logged.
+        deciding = batch.get(("agents", "deciding"))
+        mask = batch.get(("agents", "action_mask"))
+        action = batch.get(("agents", "action"))
+        assert mask.gather(-1, action.unsqueeze(-1)).squeeze(-1)[deciding].all()
+        assert torch.isfinite(batch.get(("agents", "action_log_prob"))[deciding]).all()
+    else:
+        assert (intent == 0).all()
+
+
+def test_training_with_intents_updates_and_bad_ti_is_a_clear_error(tmp_path):
+    from maipp_bench.train import train
+
+    path = train(compose_train(*TINY_TRAIN, "total_updates=1", "algo.intent_rollouts=2",
+                               "algo.intent_depth=2"), tmp_path / "ok")
+    row = torch.load(path, weights_only=False)["curve"][0]
+    assert np.isfinite(row["loss_objective"]) and np.isfinite(row["loss_critic"])
+    with pytest.raises(ValueError, match="TI"):
+        train(compose_train(*TINY_TRAIN, "total_updates=1", "algo.intent_rollouts=-1"),
+              tmp_path / "bad")
+
+
+def test_init_starts_from_a_networks_weights(tiny_checkpoint, tmp_path):
+    from maipp_bench.train import train
+
+    # lr = 0: the update cannot move the weights, so the run ends where init put it.
+    path = train(compose_train(*TINY_TRAIN, "total_updates=1", "algo.lr=0",
+                               f"init={tiny_checkpoint}"), tmp_path / "ft")
+    got, want = torch.load(path, weights_only=False), torch.load(tiny_checkpoint,
+                                                                  weights_only=False)
+    assert got["update"] == 1
+    for name, tensor in want["core"].items():
+        assert torch.equal(got["core"][name], tensor), name
+    with pytest.raises(ValueError, match="is not this run's"):
+        train(compose_train(*TINY_TRAIN, "total_updates=1", "algo.net.embed_dim=16",
+                            f"init={tiny_checkpoint}"), tmp_path / "bad")

@@ -67,6 +67,11 @@ class AlgoConfig:
     gamma: float = 1.0  # ref (single agent); per decision
     lmbda: float = 0.95  # ref (multi-agent)
     normalize_advantage: bool = False
+    # > 0: while collecting, deciding agents broadcast trajectory intents TI(a, j) with
+    # a = intent_rollouts, j = intent_depth (the paper's agents always do; without them the
+    # network never sees a non-zero intent feature in training). 0: no intents.
+    intent_rollouts: int = 0
+    intent_depth: int = 5
     net: NetConfig = field(default_factory=NetConfig)
 
 
