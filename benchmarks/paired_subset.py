@@ -3,9 +3,10 @@ docs/results.md (the suite tables and "How `ours.pt` was chosen").
 
 * ``--heldout CKPT ...``: training's model-selection score (greedy episodes on held-out
   seeds, never the protocol's; ``maipp_bench.train.evaluate``) for each checkpoint, on
-  the same episodes, at ``--budgets``; with ``--heldout-method ours_ti``, that method run
-  with each checkpoint instead (model selection for the method the leaderboard ranks),
-  with paired differences to the first checkpoint.
+  the same episodes, at ``--budgets``; with ``--heldout-method ours_ti [...]``, those
+  methods run with each checkpoint instead (model selection for the method the
+  leaderboard ranks; or a method against a diagnostic variant), with paired differences
+  to the first (checkpoint, method).
 * ``--subset DIR --method M``: rows kept apart from ``--results`` (a quick subset,
   ``eval --episodes N --out D`` then ``D/subset-N``; or a full run of another checkpoint,
   ``eval --checkpoint M=PATH --out DIR``) paired episode by episode with the full rows of
@@ -22,6 +23,8 @@ Usage:
         --budgets 2 --episodes 96 --cache outputs/heldout   # one process per budget, then
     python benchmarks/paired_subset.py --heldout A.pt B.pt --heldout-method ours_ti \\
         --budgets 2 3 4 5 --episodes 96 --cache outputs/heldout   # prints from the cache
+    python benchmarks/paired_subset.py --heldout maipp_bench/checkpoints/ours.pt \\
+        --heldout-method ours_ti ours_ti_no_intent --budgets 2 5   # what intents are worth
     python benchmarks/paired_subset.py --subset out/subset-60 --method ours_ti \\
         --against ours_ti catnipp_ti sga_rrt_0.3_0.4 oracle
 """
@@ -29,11 +32,14 @@ Usage:
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import statistics as st
 from pathlib import Path
 
 import torch
+
+from maipp_bench.allocator import keep_freed_memory
 
 
 def _mean_se(values: list[float]) -> tuple[float, float]:
@@ -42,25 +48,25 @@ def _mean_se(values: list[float]) -> tuple[float, float]:
     return st.mean(values), se
 
 
-def heldout(paths: list[str], episodes: int, budgets: list[float], method: str | None,
+def heldout(paths: list[str], episodes: int, budgets: list[float], methods: list[str],
             cache: Path | None = None) -> None:
-    """Each checkpoint on the same held-out episodes per budget, played by ``method`` (None:
-    training's model selection, greedy decoding); paired differences to the first one.
-    With ``cache``, each (checkpoint, method, budget, episodes)'s rows are kept there and
-    reused: budgets can run in separate processes, a checkpoint's rows once."""
+    """Each checkpoint played by each of ``methods`` (empty: training's model selection,
+    greedy decoding) on the same held-out episodes per budget; paired differences to the
+    first (checkpoint, method). With ``cache``, each (checkpoint, method, budget,
+    episodes)'s rows are kept there and reused: budgets can run in separate processes."""
     from maipp_bench.algos.checkpoint import load_core
     from maipp_bench.algos.registry import get_method
     from maipp_bench.envs.config import MAIPPConfig
     from maipp_bench.protocol.protocol import file_sha256
     from maipp_bench.train import greedy_method, heldout_rows
 
-    spec = get_method(method) if method else greedy_method("heldout")
+    specs = [get_method(m) for m in methods] or [greedy_method("heldout")]
     nets = {path: load_core(path) for path in paths}
     shas = {path: file_sha256(Path(path))[:12] for path in paths}
     for budget in budgets:
-        print(f"budget {budget}: {episodes} held-out episodes, {spec.name}")
+        print(f"budget {budget}: {episodes} held-out episodes")
         first: list[float] | None = None
-        for path, (core, payload) in nets.items():
+        for (path, (core, payload)), spec in itertools.product(nets.items(), specs):
             file = cache and cache / f"{shas[path]}_{spec.name}_B{budget:g}_{episodes}.json"
             if file and file.exists():
                 rows = json.loads(file.read_text())
@@ -73,8 +79,8 @@ def heldout(paths: list[str], episodes: int, budgets: list[float], method: str |
             trace = [r["trace"] for r in rows]
             first = first or trace
             diff, se = _mean_se([t - f for t, f in zip(trace, first)])
-            print(f"  {path} (update {payload.get('update')}): Tr(P_f) {st.mean(trace):7.2f}"
-                  f"  rmse {st.mean(r['rmse'] for r in rows):.3f}"
+            print(f"  {path} (update {payload.get('update')}), {spec.name}: "
+                  f"Tr(P_f) {st.mean(trace):7.2f}  rmse {st.mean(r['rmse'] for r in rows):.3f}"
                   f"  traps {st.mean(r['traps'] for r in rows):.2f}"
                   f"  minus first {diff:+6.2f} ± {se:.2f}", flush=True)
 
@@ -104,9 +110,10 @@ def main() -> None:
     p.add_argument("--episodes", type=int, default=48)
     p.add_argument("--budgets", type=float, nargs="+", default=[3.0],
                    help="--heldout: budgets to score (training selects at 3)")
-    p.add_argument("--heldout-method", metavar="METHOD",
-                   help="--heldout: run this registered method (e.g. ours_ti) with each "
-                        "checkpoint instead of training's greedy score")
+    p.add_argument("--heldout-method", metavar="METHOD", nargs="+", default=[],
+                   help="--heldout: run these registered methods (e.g. ours_ti "
+                        "ours_ti_no_intent) with each checkpoint instead of training's "
+                        "greedy score")
     p.add_argument("--cache", type=Path, metavar="DIR",
                    help="--heldout: keep each checkpoint's rows per budget here and reuse them")
     p.add_argument("--subset", type=Path,
@@ -116,6 +123,7 @@ def main() -> None:
     p.add_argument("--results", type=Path, default=Path("results"))
     p.add_argument("--against", nargs="+", default=[])
     args = p.parse_args()
+    keep_freed_memory()  # as the CLIs do (maipp_bench/allocator.py)
     torch.set_num_threads(1)
     if args.heldout:
         heldout(args.heldout, args.episodes, args.budgets, args.heldout_method, args.cache)

@@ -32,6 +32,7 @@ from omegaconf import OmegaConf
 
 import maipp_bench.train as train_mod
 from maipp_bench.algos.ppo import build_learner
+from maipp_bench.allocator import keep_freed_memory
 from maipp_bench.envs.config import MAIPPConfig
 
 
@@ -65,6 +66,7 @@ def main() -> None:
         return
     with initialize_config_module("maipp_bench.conf", version_base=None):
         cfg = compose("train", overrides=args.overrides)
+    keep_freed_memory()  # as the train CLI does
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     env_cfg = MAIPPConfig.from_dict(OmegaConf.to_container(cfg.env))

@@ -161,6 +161,21 @@ def test_learned_policy_plays_valid_reproducible_episodes(tiny_checkpoint, mode)
         assert r["distance"] <= cfg.team_budget + 1e-9 and 0 < r["trace"] <= 900
 
 
+@pytest.mark.parametrize("intents", [True, False])
+def test_ti_broadcasts_intents_unless_told_not_to(tiny_checkpoint, intents):
+    from maipp_bench.envs import MAIPPEnv
+
+    env = MAIPPEnv(MAIPPConfig(n_agents=2, budget=1.0, n_nodes=40, k_neighbors=8),
+                   batch_size=[2])
+    policy = algos.POLICIES["attention"](env, torch.tensor([3, 4]), mode="ti", rollouts=3,
+                                         depth=2, intents=intents,
+                                         checkpoint=str(tiny_checkpoint))
+    td = env.reset()
+    for _ in range(6):
+        td = env.step(policy(td))["next"]
+    assert bool(env.episode.intent_valid.any()) == intents
+
+
 def test_missing_checkpoint_and_bad_mode_are_clear_errors(tiny_checkpoint):
     from maipp_bench.envs import MAIPPEnv
 

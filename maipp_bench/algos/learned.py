@@ -36,6 +36,8 @@ class LearnedPolicy(PlannerPolicy):
         checkpoint: path or shipped name (``"ours"``); ignored when ``core`` is given.
         mode: ``"greedy"`` or ``"ti"``.
         rollouts, depth: TI(a, j) (paper: TI(8, 5)).
+        intents: whether TI broadcasts its intents (False: a diagnostic that plans with TI
+            but tells the teammates nothing, to measure what intents are worth).
         core: an in-memory network (periodic evaluation during training).
     """
 
@@ -45,7 +47,7 @@ class LearnedPolicy(PlannerPolicy):
 
     def __init__(self, env: MAIPPEnv, seeds: torch.Tensor, checkpoint: str | None = None,
                  mode: str = "greedy", rollouts: int = 8, depth: int = 5,
-                 core: AttentionCore | None = None) -> None:
+                 intents: bool = True, core: AttentionCore | None = None) -> None:
         super().__init__(env, seeds)
         if mode not in MODES:
             raise ValueError(f"mode={mode!r}; valid: {list(MODES)}")
@@ -56,6 +58,7 @@ class LearnedPolicy(PlannerPolicy):
                 raise ValueError("a learned method needs a checkpoint (path or shipped name)")
             core, _ = load_core(checkpoint, env.device)
         self.core, self.mode, self.rollouts, self.depth = core, mode, rollouts, depth
+        self.intents = intents
         self.hidden: torch.Tensor | None = None
         self.encoding: torch.Tensor | None = None
 
@@ -94,7 +97,8 @@ class LearnedPolicy(PlannerPolicy):
             else:
                 choice, mean, cov = self._trajectory_intent(rows, logits, hidden, e_idx, a_idx)
                 action[e_idx, a_idx] = choice
-                broadcast(td, self.env, e_idx, a_idx, mean, cov)
+                if self.intents:
+                    broadcast(td, self.env, e_idx, a_idx, mean, cov)
         td.set(("agents", "action"), action)
         return td
 
