@@ -129,15 +129,16 @@ def test_training_runs_with_finite_losses_and_checkpoint_round_trip(tiny_checkpo
     assert len(moved) > len(fresh) // 2
 
 
-def test_killed_and_resumed_training_continues_the_same_curve(tmp_path):
+@pytest.mark.parametrize("intents", [0, 2])
+def test_killed_and_resumed_training_continues_the_same_curve(tmp_path, intents):
     from maipp_bench.train import train
 
-    full = train(compose_train(*TINY_TRAIN, "total_updates=3", "checkpoint_every=1"),
-                 tmp_path / "full")
-    part = train(compose_train(*TINY_TRAIN, "total_updates=2", "checkpoint_every=1"),
-                 tmp_path / "part")
-    resumed = train(compose_train(*TINY_TRAIN, "total_updates=3", "checkpoint_every=1",
-                                  f"resume={part}"), tmp_path / "elsewhere")
+    run = [*TINY_TRAIN, "checkpoint_every=1", f"algo.intent_rollouts={intents}",
+           "algo.intent_depth=2"]  # intents: the rollouts' noise replays too
+    full = train(compose_train(*run, "total_updates=3"), tmp_path / "full")
+    part = train(compose_train(*run, "total_updates=2"), tmp_path / "part")
+    resumed = train(compose_train(*run, "total_updates=3", f"resume={part}"),
+                    tmp_path / "elsewhere")
     assert resumed == part  # the run continues in its own folder
     a, b = torch.load(full, weights_only=False), torch.load(resumed, weights_only=False)
     for name, tensor in a["core"].items():
@@ -404,8 +405,9 @@ def test_training_and_ti_run_on_cuda(algo, tmp_path):
         pytest.skip("CUDA is not available")
     from maipp_bench.train import train
 
+    intents = ["algo.intent_rollouts=2", "algo.intent_depth=2"] if algo == "ours" else []
     path = train(compose_train(*TINY_TRAIN, f"algo={algo}", "total_updates=1", "device=cuda",
-                               "eval_every=1", "eval_episodes=2"), tmp_path)
+                               "eval_every=1", "eval_episodes=2", *intents), tmp_path)
     row = torch.load(path, weights_only=False, map_location="cpu")["curve"][0]
     assert np.isfinite(row["loss_objective"]) and np.isfinite(row["loss_critic"])
     assert 0 < row["eval/trace"] <= 900
