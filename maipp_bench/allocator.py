@@ -8,16 +8,18 @@ of its wall time in the kernel (``sys`` 25 s of 70 s for 30 episodes). Serving l
 blocks from the heap and never trimming it lets freed blocks be reused; the arithmetic
 is untouched, so results stay bit-identical (``benchmarks/allocator.py`` measures it).
 
-The CLIs (``maipp_bench.eval``, ``maipp_bench.train``) and the benchmarks call
-:func:`keep_freed_memory` at start; importing the package changes nothing. Users opt out
-by setting glibc's own ``MALLOC_MMAP_MAX_`` in the environment (which is then respected,
-e.g. ``MALLOC_MMAP_MAX_=65536`` restores the default).
+The CLIs (``maipp_bench.eval``, ``maipp_bench.train``) and the workload benchmarks
+(``paired_subset.py``, ``train_throughput.py``) call :func:`keep_freed_memory` at start;
+importing the package changes nothing. The price: a process keeps its peak memory until
+it exits (freed blocks are kept for reuse, not given back). Users opt out by setting
+glibc's own ``MALLOC_MMAP_MAX_`` in the environment (which is then respected, e.g.
+``MALLOC_MMAP_MAX_=65536`` restores the default); other glibc tunables set by the user
+(``MALLOC_TRIM_THRESHOLD_``, ``GLIBC_TUNABLES``) are overridden unless it is set too.
 """
 
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import os
 
 # mallopt(3) parameters (malloc.h).
@@ -36,11 +38,8 @@ def keep_freed_memory() -> bool:
     """
     if OPT_OUT_VARIABLE in os.environ:
         return False
-    name = ctypes.util.find_library("c")
-    if name is None:
-        return False
-    try:
-        mallopt = ctypes.CDLL(name).mallopt
+    try:  # the C library this process already runs on (no ldconfig lookup)
+        mallopt = ctypes.CDLL(None).mallopt
     except (OSError, AttributeError):
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int

@@ -38,12 +38,13 @@ from torchrl.data.replay_buffers import SamplerWithoutReplacement
 from torchrl.envs import Compose, TensorDictPrimer, Transform, TransformedEnv
 from tqdm import tqdm
 
-from maipp_bench.algos.checkpoint import FORMAT, atomic_save, export_policy, load_core, resolve
+from maipp_bench.algos.attention import FEATURE_SETS
+from maipp_bench.algos.checkpoint import FORMAT, atomic_save, export_policy, load_core
 from maipp_bench.algos.decisions import decision_batch
 from maipp_bench.algos.modules import HIDDEN_KEY, TeamPolicy, decision_rows
 from maipp_bench.algos.ppo import AlgoConfig, Learner, build_learner
 from maipp_bench.algos.registry import MethodSpec, get_method
-from maipp_bench.algos.rollouts import IntentBroadcast
+from maipp_bench.algos.rollouts import IntentBroadcast, check_training_intents
 from maipp_bench.allocator import keep_freed_memory
 from maipp_bench.envs import rng
 from maipp_bench.envs.config import MAIPPConfig, check_device
@@ -228,12 +229,13 @@ def heldout_rows(core: Any, env_cfg: MAIPPConfig, episodes: int, budget: float,
                      core=core)
 
 
-def init_weights(learner: Learner, checkpoint: str, algo: Any) -> None:
-    """Load the network weights of ``checkpoint`` (path or shipped name) into ``learner``;
-    a network of another feature set or size is a ValueError naming both."""
-    core, payload = load_core(resolve(checkpoint), next(learner.core.parameters()).device)
-    theirs = (payload["algo"]["feature_set"], core.net.cfg)
-    ours = (algo.feature_set, learner.core.net.cfg)
+def init_weights(learner: Learner, checkpoint: str, algo: Any, threshold: float) -> None:
+    """Load the policy network of ``checkpoint`` (path or shipped name) into ``learner``
+    (a separate critic, MAPPO's, starts fresh); a network of another feature set, size or
+    interest threshold (an input of the network) is a ValueError naming both."""
+    core, payload = load_core(checkpoint, next(learner.core.parameters()).device)
+    theirs = (payload["algo"]["feature_set"], core.net.cfg, core.net.threshold)
+    ours = (algo.feature_set, learner.core.net.cfg, threshold)
     if theirs != ours:
         raise ValueError(f"init={checkpoint}: its network {theirs} is not this run's {ours}")
     learner.core.load_state_dict(core.state_dict())
@@ -322,6 +324,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
         raise ValueError("env.node_encoding_dim must be >= 1: the network reads the "
                          "roadmap's Laplacian encoding (paper: 32)")
     eval_spec(cfg)  # a bad eval_method / eval_budgets fails now, not at the first evaluation
+    check_training_intents(cfg.algo, FEATURE_SETS.get(cfg.algo.feature_set, ()))
     # Disjoint from every protocol seed, so training never sees the leaderboard's episodes.
     protocol_seeds = {s for suite in load_protocol(1).suites.values()
                       for s in (*suite.instance_seeds, *suite.trial_seeds)}
@@ -331,7 +334,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
     learner = build_learner(cfg.algo, env_cfg.node_encoding_dim, env_cfg.interest_threshold,
                             cfg.device)
     if cfg.init and not cfg.resume:
-        init_weights(learner, cfg.init, cfg.algo)
+        init_weights(learner, cfg.init, cfg.algo, env_cfg.interest_threshold)
     optim = torch.optim.Adam(learner.parameters(), lr=cfg.algo.lr)
     sched = torch.optim.lr_scheduler.StepLR(optim, cfg.algo.lr_decay_every, cfg.algo.lr_decay)
     ckpt_path = run_dir / "checkpoint.pt"

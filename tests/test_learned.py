@@ -452,9 +452,14 @@ def test_training_with_intents_updates_and_bad_ti_is_a_clear_error(tmp_path):
                                "algo.intent_depth=2"), tmp_path / "ok")
     row = torch.load(path, weights_only=False)["curve"][0]
     assert np.isfinite(row["loss_objective"]) and np.isfinite(row["loss_critic"])
-    with pytest.raises(ValueError, match="TI"):
-        train(compose_train(*TINY_TRAIN, "total_updates=1", "algo.intent_rollouts=-1"),
-              tmp_path / "bad")
+    bad = {"algo.intent_rollouts=-1": "algo.intent_rollouts=-1",
+           "algo.intent_depth=0": "algo.intent_depth=0",
+           "algo=catnipp": "does not read intents"}
+    for override, message in bad.items():
+        with pytest.raises(ValueError, match=message):  # before anything is written
+            train(compose_train(*TINY_TRAIN, "total_updates=1", "algo.intent_rollouts=2",
+                                override), tmp_path / "bad")
+        assert not (tmp_path / "bad").exists()
 
 
 def test_init_starts_from_a_networks_weights(tiny_checkpoint, tmp_path):

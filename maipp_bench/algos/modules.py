@@ -142,20 +142,23 @@ class TeamPolicy(TensorDictModuleBase):
         critic: optional separate critic on decision rows (MAPPO); by default the actor's
             own ``live_value``.
         intent: optional ``intent(td, rows, e_idx, a_idx)`` that writes the deciding
-            agents' broadcast intents into ``td``
+            agents' broadcast intents into ``td`` (its ``KEYS`` join ``out_keys``)
             (:class:`~maipp_bench.algos.rollouts.IntentBroadcast`).
     """
 
     in_keys = [("agents", "observation"), ("agents", "action_mask"), ("agents", "deciding"),
                "node_encoding", "state"]
-    out_keys = [("agents", "action"), ("agents", LOG_PROB_KEY), ("agents", "state_value"),
+    OUT_KEYS = [("agents", "action"), ("agents", LOG_PROB_KEY), ("agents", "state_value"),
                 ("next", *HIDDEN_KEY)]
+    out_keys = OUT_KEYS
 
     def __init__(self, actor: ProbabilisticActor, critic: TensorDictModule | None = None,
                  hidden_dim: int = 128, intent: Any = None) -> None:
         super().__init__()
         self.actor, self.critic, self.hidden_dim = actor, critic, hidden_dim
         self.intent = intent
+        if intent is not None:
+            self.out_keys = [*self.OUT_KEYS, *intent.KEYS]
 
     def forward(self, td: TensorDictBase, **kwargs: Any) -> TensorDictBase:
         deciding = td.get(("agents", "deciding"))
@@ -178,8 +181,8 @@ class TeamPolicy(TensorDictModuleBase):
             log_prob[e_idx, a_idx] = rows.get(LOG_PROB_KEY).detach()
             value[e_idx, a_idx] = rows.get("state_value").detach()
             new_hidden[e_idx, a_idx] = rows.get("next_hidden").detach()
-            if self.intent is not None:
-                self.intent(td, rows, e_idx, a_idx)
+        if self.intent is not None:
+            self.intent(td, rows if e_idx.numel() else None, e_idx, a_idx)
         td.set(("agents", "action"), action)
         td.set(("agents", LOG_PROB_KEY), log_prob)
         td.set(("agents", "state_value"), value)

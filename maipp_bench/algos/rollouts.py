@@ -14,6 +14,7 @@ the episode's counter-based noise) and while collecting training data
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
@@ -24,6 +25,18 @@ from maipp_bench.envs.dynamics import EPS, edge_points, sample_offsets
 from maipp_bench.envs.intent import fit_intent
 from maipp_bench.envs.maipp_env import MAIPPEnv
 from maipp_bench.envs.roadmap import Roadmap
+
+
+def check_training_intents(algo: Any, feature_set_columns: tuple[str, ...]) -> None:
+    """A clear error for bad ``algo.intent_rollouts`` / ``algo.intent_depth`` values, or
+    intents for a network that does not read them (checked before training starts)."""
+    a, j = algo.intent_rollouts, algo.intent_depth
+    if a < 0 or (a > 0 and j < 1):
+        raise ValueError(f"algo.intent_rollouts={a}, algo.intent_depth={j}: training intents "
+                         f"are TI(a, j) with a >= 1 and j >= 1, or a = 0 for none")
+    if a > 0 and "intent" not in feature_set_columns:
+        raise ValueError(f"algo.intent_rollouts={a}: feature set {algo.feature_set!r} does "
+                         f"not read intents ({list(feature_set_columns)}); set it to 0")
 
 
 def samples_per_edge(roadmap: Roadmap, spacing: float) -> int:
@@ -70,6 +83,9 @@ def fantasy_rollouts(core: AttentionCore, env: MAIPPEnv, rows: TensorDictBase,
     g2 = cfg.n_grid
     b, k = logits.shape
     a, j = gumbel.shape[0] // max(b, 1), gumbel.shape[1]
+    if gumbel.shape != (b * a, j, k) or a < 1:
+        raise ValueError(f"gumbel noise must be [B * a, j, k] with B = {b}, k = {k}; "
+                         f"got {list(gumbel.shape)}")
     rep = lambda x: x.repeat_interleave(a, 0)  # noqa: E731  [B, ...] -> [B * a, ...]
     er, ar = rep(e_idx), rep(a_idx)
     rm = st.roadmap[er]
@@ -159,6 +175,8 @@ class IntentBroadcast:
         rollouts, depth: TI(a, j).
     """
 
+    KEYS = [("agents", "intent", "mean"), ("agents", "intent", "cov")]
+
     def __init__(self, env: MAIPPEnv, core: AttentionCore, rollouts: int, depth: int) -> None:
         if rollouts < 1 or depth < 1:
             raise ValueError(f"training intents need TI(a, j) with a, j >= 1, got "
@@ -166,8 +184,15 @@ class IntentBroadcast:
         self.env, self.core, self.rollouts, self.depth = env, core, rollouts, depth
 
     @torch.no_grad()
-    def __call__(self, td: TensorDictBase, rows: TensorDictBase, e_idx: torch.Tensor,
+    def __call__(self, td: TensorDictBase, rows: TensorDictBase | None, e_idx: torch.Tensor,
                  a_idx: torch.Tensor) -> None:
+        """Write the intents of the deciding agents ``(e_idx, a_idx)`` (their decision
+        ``rows`` after the actor: ``logits``, ``next_hidden``) into ``td``; with no deciding
+        agent (``rows`` None) the keys are still written, so every frame has them."""
+        if rows is None or not e_idx.numel():
+            empty = torch.zeros(0, 2, dtype=torch.float64, device=self.env.device)
+            broadcast(td, self.env, e_idx, a_idx, empty, empty.view(0, 1, 2).expand(0, 2, 2))
+            return
         logits = rows.get("logits")
         u = torch.rand(logits.shape[0] * self.rollouts, self.depth, logits.shape[-1],
                        dtype=torch.float64, device=logits.device)
