@@ -3,8 +3,8 @@
 glibc serves every allocation above its mmap threshold (32 MiB at most) with a fresh
 ``mmap`` and gives it back with ``munmap`` on free. TI rollouts and large env batches
 allocate and free activations of 50-150 MiB many times per second, so the kernel zeroes
-and maps every page of them again each time: on the 2-core box, TI evaluation spent 36%
-of its wall time in the kernel (``sys`` 25 s of 70 s for 30 episodes). Serving large
+and maps every page of them again each time: on the 2-core box, TI evaluation spent
+nearly half its wall time in the kernel (``sys`` 44 s of 94 s for 30 episodes). Serving large
 blocks from the heap and never trimming it lets freed blocks be reused; the arithmetic
 is untouched, so results stay bit-identical (``benchmarks/allocator.py`` measures it).
 

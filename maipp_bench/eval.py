@@ -66,7 +66,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def _run_chunk(method: str, cfg, insts: list[int], trial: int, device: str,
                threads: int, policy_kwargs: dict) -> list[dict]:
-    keep_freed_memory()  # a spawned worker starts with glibc's defaults
     torch.set_num_threads(threads)
     with torch.inference_mode():
         return run_chunk(algos.get_method(method), cfg, insts, trial, device=device,
@@ -198,7 +197,8 @@ def main(argv: list[str] | None = None) -> dict:
     else:
         # CUDA cannot be used in forked children once a parent touched it: spawn them.
         spawn = torch.device(args.device).type == "cuda"
-        with ProcessPoolExecutor(max_workers=args.workers,
+        # A spawned worker starts with glibc's defaults: each sets the allocator once.
+        with ProcessPoolExecutor(max_workers=args.workers, initializer=keep_freed_memory,
                                  mp_context=multiprocessing.get_context("spawn") if spawn
                                  else None) as pool:
             futures = {pool.submit(_run_chunk, *job): chunk for chunk, job in zip(chunks, jobs)}

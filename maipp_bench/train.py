@@ -38,7 +38,6 @@ from torchrl.data.replay_buffers import SamplerWithoutReplacement
 from torchrl.envs import Compose, TensorDictPrimer, Transform, TransformedEnv
 from tqdm import tqdm
 
-from maipp_bench.algos.attention import FEATURE_SETS
 from maipp_bench.algos.checkpoint import FORMAT, atomic_save, export_policy, load_core
 from maipp_bench.algos.decisions import decision_batch
 from maipp_bench.algos.modules import HIDDEN_KEY, TeamPolicy, decision_rows
@@ -324,7 +323,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
         raise ValueError("env.node_encoding_dim must be >= 1: the network reads the "
                          "roadmap's Laplacian encoding (paper: 32)")
     eval_spec(cfg)  # a bad eval_method / eval_budgets fails now, not at the first evaluation
-    check_training_intents(cfg.algo, FEATURE_SETS.get(cfg.algo.feature_set, ()))
+    check_training_intents(cfg.algo)
     # Disjoint from every protocol seed, so training never sees the leaderboard's episodes.
     protocol_seeds = {s for suite in load_protocol(1).suites.values()
                       for s in (*suite.instance_seeds, *suite.trial_seeds)}

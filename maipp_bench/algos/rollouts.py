@@ -19,6 +19,7 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 
+from maipp_bench.algos.attention import FEATURE_SETS
 from maipp_bench.algos.modules import AttentionCore
 from maipp_bench.envs.belief import interest_trace
 from maipp_bench.envs.dynamics import EPS, edge_points, sample_offsets
@@ -27,10 +28,11 @@ from maipp_bench.envs.maipp_env import MAIPPEnv
 from maipp_bench.envs.roadmap import Roadmap
 
 
-def check_training_intents(algo: Any, feature_set_columns: tuple[str, ...]) -> None:
+def check_training_intents(algo: Any) -> None:
     """A clear error for bad ``algo.intent_rollouts`` / ``algo.intent_depth`` values, or
     intents for a network that does not read them (checked before training starts)."""
     a, j = algo.intent_rollouts, algo.intent_depth
+    feature_set_columns = FEATURE_SETS.get(algo.feature_set, ())
     if a < 0 or (a > 0 and j < 1):
         raise ValueError(f"algo.intent_rollouts={a}, algo.intent_depth={j}: training intents "
                          f"are TI(a, j) with a >= 1 and j >= 1, or a = 0 for none")
@@ -190,8 +192,8 @@ class IntentBroadcast:
         ``rows`` after the actor: ``logits``, ``next_hidden``) into ``td``; with no deciding
         agent (``rows`` None) the keys are still written, so every frame has them."""
         if rows is None or not e_idx.numel():
-            empty = torch.zeros(0, 2, dtype=torch.float64, device=self.env.device)
-            broadcast(td, self.env, e_idx, a_idx, empty, empty.view(0, 1, 2).expand(0, 2, 2))
+            none = torch.zeros(0, 2, 2, dtype=torch.float64, device=self.env.device)
+            broadcast(td, self.env, e_idx, a_idx, none[:, 0], none)
             return
         logits = rows.get("logits")
         u = torch.rand(logits.shape[0] * self.rollouts, self.depth, logits.shape[-1],
