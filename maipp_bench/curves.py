@@ -3,7 +3,7 @@
 Reads a run folder's ``curve.jsonl`` or a shipped checkpoint's JSON card and plots, against
 env frames, the final Tr(P) of the training episodes, the held-out evaluation's Tr(P)
 (greedy decoding unless the run's ``eval_method`` says otherwise) and the mean reward per
-decision. A card's selected update (the weights shipped) is marked by a dashed line.
+decision. A card's selected update (the weights it exports) is marked by a dashed line.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ def read_curve(source: str | Path) -> list[dict[str, Any]]:
 
 
 def selected_frames(source: str | Path) -> int | None:
-    """Env frames at the update a checkpoint card shipped (None for a run folder)."""
+    """Env frames at the update a checkpoint card selected (None for a run folder)."""
     path = Path(source)
     if path.is_dir() or path.suffix != ".json":
         return None
@@ -66,7 +66,7 @@ def plot_curves(sources: dict[str, list[dict[str, Any]]], out: str | Path,
                 line, = ax.plot(*zip(*pts), marker="." if len(pts) < 40 else None, label=name)
                 if selected and name in selected:
                     ax.axvline(selected[name], color=line.get_color(), ls="--", lw=1,
-                               label=f"{name}: shipped update")
+                               label=f"{name}: selected update")
         ax.set_title(title)
         ax.set_xlabel("env frames")
         # Thousands as "20k": full numbers run into each other on narrow panels.
