@@ -94,6 +94,11 @@ class TrainConfig:
     # every budget counts by its relative change), else at eval_budget.
     eval_method: str = "greedy"
     eval_budgets: list[float] = field(default_factory=list)
+    # Keep the weights of every evaluated update in <run>/snapshots/update_<N>.pt (slim
+    # policy files): best.pt is chosen by the held-out score, which may not rank candidates
+    # as the leaderboard's method would; snapshots let them be compared afterwards
+    # (benchmarks/paired_subset.py --heldout <run>/snapshots/*.pt --heldout-method ours_ti).
+    keep_snapshots: bool = False
     resume: str | None = None
     # Start from this network's weights (a checkpoint or an exported policy, e.g. "ours"):
     # fine-tuning, with a fresh optimizer and update count. Ignored when resuming.
@@ -365,15 +370,16 @@ def train(cfg: Any, run_dir: Path) -> Path:
     bar = tqdm(total=cfg.total_updates, initial=start, desc=f"train {cfg.algo.name}",
                unit="upd", disable=not cfg.progress, dynamic_ncols=True)
 
-    def save(update: int, path: Path = ckpt_path) -> None:
-        atomic_save({
-            "format": FORMAT, "update": update, "frames": frames, "episodes": episodes,
-            "wall_s": wall, "curve": curve, "core": learner.core.state_dict(),
-            "loss": learner.loss.state_dict(), "optimizer": optim.state_dict(),
-            "scheduler": sched.state_dict(), "algo": OmegaConf.to_container(cfg.algo),
-            "env": env_cfg.to_dict(), "config": OmegaConf.to_container(cfg),
-            "commands": commands,
-        }, path)
+    def save(update: int, path: Path = ckpt_path, slim: bool = False) -> None:
+        """The whole training state, or (``slim``) the network and its configs only."""
+        state = {"format": FORMAT, "update": update, "frames": frames, "episodes": episodes,
+                 "wall_s": wall, "core": learner.core.state_dict(),
+                 "algo": OmegaConf.to_container(cfg.algo), "env": env_cfg.to_dict(),
+                 "config": OmegaConf.to_container(cfg), "commands": commands}
+        if not slim:
+            state.update(curve=curve, loss=learner.loss.state_dict(),
+                         optimizer=optim.state_dict(), scheduler=sched.state_dict())
+        atomic_save(state, path)
 
     for update in range(start, cfg.total_updates):
         t0 = time.perf_counter()
@@ -405,6 +411,8 @@ def train(cfg: Any, run_dir: Path) -> Path:
             learner.core.eval()
             row.update(evaluate(learner, env_cfg, cfg))
         curve.append(row)
+        if cfg.keep_snapshots and "eval/trace" in row:
+            save(update + 1, run_dir / "snapshots" / f"update_{update + 1:04d}.pt", slim=True)
         if row.get("eval/trace", math.inf) < best:
             best = row["eval/trace"]
             save(update + 1, run_dir / "best.pt")

@@ -476,3 +476,23 @@ def test_init_starts_from_a_networks_weights(tiny_checkpoint, tmp_path):
     with pytest.raises(ValueError, match="is not this run's"):
         train(compose_train(*TINY_TRAIN, "total_updates=1", "algo.net.embed_dim=16",
                             f"init={tiny_checkpoint}"), tmp_path / "bad")
+
+
+def test_snapshots_keep_every_evaluated_update(tiny_checkpoint, tmp_path):
+    from maipp_bench.train import train
+
+    assert not (tiny_checkpoint.parent / "snapshots").exists()  # off by default
+    run = tmp_path / "run"
+    train(compose_train(*TINY_TRAIN, "total_updates=4", "eval_every=2", "eval_episodes=2",
+                        "keep_snapshots=true"), run)
+    snaps = sorted((run / "snapshots").glob("*.pt"))
+    assert [s.name for s in snaps] == ["update_0002.pt", "update_0004.pt"]
+    best = torch.load(run / "best.pt", weights_only=False)
+    snap = run / "snapshots" / f"update_{best['update']:04d}.pt"
+    core, payload = load_core(snap)
+    assert payload["update"] == best["update"] and "optimizer" not in payload
+    for name, tensor in core.state_dict().items():  # the same weights as best.pt
+        assert torch.equal(tensor, best["core"][name])
+    last, _ = load_core(snaps[-1])
+    final = torch.load(run / "checkpoint.pt", weights_only=False)["core"]
+    assert all(torch.equal(t, final[n]) for n, t in last.state_dict().items())
