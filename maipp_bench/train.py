@@ -38,7 +38,7 @@ from torchrl.data.replay_buffers import SamplerWithoutReplacement
 from torchrl.envs import Compose, TensorDictPrimer, Transform, TransformedEnv
 from tqdm import tqdm
 
-from maipp_bench.algos.checkpoint import FORMAT, atomic_save, export_policy, load_core
+from maipp_bench.algos.checkpoint import FORMAT, atomic_save, export_policy, load_core, slim
 from maipp_bench.algos.decisions import decision_batch
 from maipp_bench.algos.modules import HIDDEN_KEY, TeamPolicy, decision_rows
 from maipp_bench.algos.ppo import AlgoConfig, Learner, build_learner
@@ -370,16 +370,17 @@ def train(cfg: Any, run_dir: Path) -> Path:
     bar = tqdm(total=cfg.total_updates, initial=start, desc=f"train {cfg.algo.name}",
                unit="upd", disable=not cfg.progress, dynamic_ncols=True)
 
-    def save(update: int, path: Path = ckpt_path, slim: bool = False) -> None:
-        """The whole training state, or (``slim``) the network and its configs only."""
-        state = {"format": FORMAT, "update": update, "frames": frames, "episodes": episodes,
-                 "wall_s": wall, "core": learner.core.state_dict(),
-                 "algo": OmegaConf.to_container(cfg.algo), "env": env_cfg.to_dict(),
-                 "config": OmegaConf.to_container(cfg), "commands": commands}
-        if not slim:
-            state.update(curve=curve, loss=learner.loss.state_dict(),
-                         optimizer=optim.state_dict(), scheduler=sched.state_dict())
-        atomic_save(state, path)
+    def save(update: int, path: Path = ckpt_path, policy_only: bool = False) -> None:
+        """The whole training state, or (``policy_only``) a policy file's part of it."""
+        state = {
+            "format": FORMAT, "update": update, "frames": frames, "episodes": episodes,
+            "wall_s": wall, "curve": curve, "core": learner.core.state_dict(),
+            "loss": learner.loss.state_dict(), "optimizer": optim.state_dict(),
+            "scheduler": sched.state_dict(), "algo": OmegaConf.to_container(cfg.algo),
+            "env": env_cfg.to_dict(), "config": OmegaConf.to_container(cfg),
+            "commands": commands,
+        }
+        atomic_save(slim(state) if policy_only else state, path)
 
     for update in range(start, cfg.total_updates):
         t0 = time.perf_counter()
@@ -412,7 +413,8 @@ def train(cfg: Any, run_dir: Path) -> Path:
             row.update(evaluate(learner, env_cfg, cfg))
         curve.append(row)
         if cfg.keep_snapshots and "eval/trace" in row:
-            save(update + 1, run_dir / "snapshots" / f"update_{update + 1:04d}.pt", slim=True)
+            save(update + 1, run_dir / "snapshots" / f"update_{update + 1:04d}.pt",
+                 policy_only=True)
         if row.get("eval/trace", math.inf) < best:
             best = row["eval/trace"]
             save(update + 1, run_dir / "best.pt")

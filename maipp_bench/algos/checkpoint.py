@@ -66,9 +66,18 @@ def load_core(checkpoint: str | Path, device: str | torch.device = "cpu"
     return core.eval(), payload
 
 
+# What a policy file keeps of a training checkpoint: the network, the configs that define
+# it, and where it came from (no optimiser, schedule or loss state).
+POLICY_KEYS = ("format", "algo", "env", "core", "update", "frames", "wall_s", "config",
+               "commands")
+
+
+def slim(state: dict[str, Any], *extra: str) -> dict[str, Any]:
+    """The policy-file part of a training checkpoint's ``state`` (plus ``extra`` keys)."""
+    return {k: state[k] for k in (*POLICY_KEYS, *extra)}
+
+
 def export_policy(checkpoint: str | Path, out: str | Path) -> None:
     """Write the slim policy file (weights + configs + curve) of a training checkpoint."""
     payload = torch.load(checkpoint, map_location="cpu", weights_only=False)
-    keep = ("format", "algo", "env", "core", "update", "frames", "wall_s", "config", "curve",
-            "commands")
-    atomic_save({k: payload[k] for k in keep}, out)
+    atomic_save(slim(payload, "curve"), out)

@@ -191,7 +191,7 @@ class IntentBroadcast:
         """Write the intents of the deciding agents ``(e_idx, a_idx)`` (their decision
         ``rows`` after the actor: ``logits``, ``next_hidden``) into ``td``; with no deciding
         agent (``rows`` None) the keys are still written, so every frame has them."""
-        if rows is None or not e_idx.numel():
+        if rows is None:
             none = torch.zeros(0, 2, 2, dtype=torch.float64, device=self.env.device)
             broadcast(td, self.env, e_idx, a_idx, none[:, 0], none)
             return
