@@ -22,6 +22,7 @@ import platform
 import subprocess
 import sys
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -261,6 +262,19 @@ def eval_spec(cfg: Any) -> tuple[MethodSpec, list[float]]:
     return spec, budgets
 
 
+def warn_unseen_intents(cfg: Any, spec: MethodSpec) -> None:
+    """Warn when a network trained with intents is selected by a method that sends none:
+    its held-out score (and so ``best.pt``) then sees the intent feature at zero, which
+    the network never saw in training."""
+    sends = spec.params.get("mode") == "ti" and spec.params.get("intents", True)
+    if cfg.algo.intent_rollouts > 0 and cfg.eval_every > 0 and not sends:
+        warnings.warn(f"algo.intent_rollouts={cfg.algo.intent_rollouts} trains with "
+                      f"teammates' intents, but eval_method={cfg.eval_method!r} sends none: "
+                      f"best.pt is chosen without the input the network learnt from; use "
+                      f"eval_method={cfg.algo.name}_ti, or keep_snapshots=true and compare "
+                      f"the snapshots under TI afterwards", stacklevel=2)
+
+
 def _tag(method: str, budgets: list[float]) -> str:
     return f"{method}@{','.join(f'{b:g}' for b in budgets)}"
 
@@ -327,8 +341,9 @@ def train(cfg: Any, run_dir: Path) -> Path:
     if env_cfg.node_encoding_dim < 1:
         raise ValueError("env.node_encoding_dim must be >= 1: the network reads the "
                          "roadmap's Laplacian encoding (paper: 32)")
-    eval_spec(cfg)  # a bad eval_method / eval_budgets fails now, not at the first evaluation
+    spec, _ = eval_spec(cfg)  # a bad eval_method / eval_budgets fails now, not later
     check_training_intents(cfg.algo)
+    warn_unseen_intents(cfg, spec)
     # Disjoint from every protocol seed, so training never sees the leaderboard's episodes.
     protocol_seeds = {s for suite in load_protocol(1).suites.values()
                       for s in (*suite.instance_seeds, *suite.trial_seeds)}

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -460,6 +461,22 @@ def test_training_with_intents_updates_and_bad_ti_is_a_clear_error(tmp_path):
             train(compose_train(*TINY_TRAIN, "total_updates=1", "algo.intent_rollouts=2",
                                 override), tmp_path / "bad")
         assert not (tmp_path / "bad").exists()
+
+
+def test_selecting_an_intent_trained_network_without_intents_warns():
+    from maipp_bench.train import eval_spec, warn_unseen_intents
+
+    intents = ["algo.intent_rollouts=2", "eval_every=1"]
+    for silent in ("eval_method=greedy", "eval_method=ours_ti_no_intent"):
+        cfg = compose_train(*TINY_TRAIN, *intents, silent)
+        with pytest.warns(UserWarning, match="sends none"):
+            warn_unseen_intents(cfg, eval_spec(cfg)[0])
+    for fine in ([*intents, "eval_method=ours_ti"], ["eval_every=1"],
+                 ["algo.intent_rollouts=2", "eval_every=0"]):
+        cfg = compose_train(*TINY_TRAIN, *fine)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            warn_unseen_intents(cfg, eval_spec(cfg)[0])
 
 
 def test_init_starts_from_a_networks_weights(tiny_checkpoint, tmp_path):
