@@ -41,6 +41,7 @@ from tqdm import tqdm
 
 from maipp_bench.algos.checkpoint import FORMAT, atomic_save, export_policy, load_core, slim
 from maipp_bench.algos.decisions import decision_batch
+from maipp_bench.algos.learned import LearnedPolicy
 from maipp_bench.algos.modules import HIDDEN_KEY, TeamPolicy, decision_rows
 from maipp_bench.algos.ppo import AlgoConfig, Learner, build_learner
 from maipp_bench.algos.registry import MethodSpec, get_method
@@ -266,7 +267,7 @@ def warn_unseen_intents(cfg: Any, spec: MethodSpec) -> None:
     """Warn when a network trained with intents is selected by a method that sends none:
     its held-out score (and so ``best.pt``) then sees the intent feature at zero, which
     the network never saw in training."""
-    sends = spec.params.get("mode") == "ti" and spec.params.get("intents", True)
+    sends = LearnedPolicy.sends_intents(spec.params)
     if cfg.algo.intent_rollouts > 0 and cfg.eval_every > 0 and not sends:
         warnings.warn(f"algo.intent_rollouts={cfg.algo.intent_rollouts} trains with "
                       f"teammates' intents, but eval_method={cfg.eval_method!r} sends none: "

@@ -13,6 +13,10 @@ intents.
 
 from __future__ import annotations
 
+import inspect
+from collections.abc import Mapping
+from typing import Any
+
 import torch
 from tensordict import TensorDictBase
 
@@ -62,6 +66,13 @@ class LearnedPolicy(PlannerPolicy):
         self.hidden: torch.Tensor | None = None
         self.encoding: torch.Tensor | None = None
 
+    @staticmethod
+    def sends_intents(params: Mapping[str, Any]) -> bool:
+        """Whether a method with these YAML ``params`` broadcasts intents (TI with
+        ``intents`` on; a param left out takes this class's default)."""
+        args = {**_INIT_DEFAULTS, **params}
+        return args["mode"] == "ti" and bool(args["intents"])
+
     def _track_episodes(self) -> None:
         """LSTM states and roadmap encodings of the episodes that just started."""
         st = self.env.episode
@@ -110,3 +121,9 @@ class LearnedPolicy(PlannerPolicy):
         rollouts = fantasy_rollouts(self.core, self.env, rows, logits, hidden, e_idx, a_idx,
                                     gumbel)
         return (rollouts.best_first(), *rollouts.intent(self.env.config.intent_cov_floor))
+
+
+# The constructor's defaults, which a method YAML's omitted params take.
+_INIT_DEFAULTS = {name: p.default for name, p in
+                  inspect.signature(LearnedPolicy.__init__).parameters.items()
+                  if p.default is not inspect.Parameter.empty}
