@@ -49,11 +49,13 @@ def _mean_se(values: list[float]) -> tuple[float, float]:
 
 
 def heldout(paths: list[str], episodes: int, budgets: list[float], methods: list[str],
-            cache: Path | None = None) -> None:
+            cache: Path | None = None, first: int = 0) -> None:
     """Each checkpoint played by each of ``methods`` (empty: training's model selection,
     greedy decoding) on the same held-out episodes per budget; paired differences to the
     first (checkpoint, method). With ``cache``, each (checkpoint, method, budget,
-    episodes)'s rows are kept there and reused: budgets can run in separate processes."""
+    episodes)'s rows are kept there and reused: budgets can run in separate processes.
+    ``first``: the held-out episodes from this one on (fresh episodes for a candidate
+    chosen on the earlier ones)."""
     from maipp_bench.algos.checkpoint import load_core
     from maipp_bench.algos.registry import get_method
     from maipp_bench.envs.config import MAIPPConfig
@@ -64,21 +66,22 @@ def heldout(paths: list[str], episodes: int, budgets: list[float], methods: list
     nets = {path: load_core(path) for path in paths}
     shas = {path: file_sha256(Path(path))[:12] for path in paths}
     for budget in budgets:
-        print(f"budget {budget}: {episodes} held-out episodes")
-        first: list[float] | None = None
+        print(f"budget {budget}: {episodes} held-out episodes from #{first}")
+        ref: list[float] | None = None
         for (path, (core, payload)), spec in itertools.product(nets.items(), specs):
-            file = cache and cache / f"{shas[path]}_{spec.name}_B{budget:g}_{episodes}.json"
+            span = f"{episodes}" if first == 0 else f"{first}+{episodes}"
+            file = cache and cache / f"{shas[path]}_{spec.name}_B{budget:g}_{span}.json"
             if file and file.exists():
                 rows = json.loads(file.read_text())
             else:
                 rows = heldout_rows(core, MAIPPConfig.from_dict(payload["env"]), episodes,
-                                    budget, spec)
+                                    budget, spec, first)
                 if file:
                     file.parent.mkdir(parents=True, exist_ok=True)
                     file.write_text(json.dumps(rows))
             trace = [r["trace"] for r in rows]
-            first = first or trace
-            diff, se = _mean_se([t - f for t, f in zip(trace, first)])
+            ref = ref or trace
+            diff, se = _mean_se([t - f for t, f in zip(trace, ref)])
             print(f"  {path} (update {payload.get('update')}), {spec.name}: "
                   f"Tr(P_f) {st.mean(trace):7.2f}  rmse {st.mean(r['rmse'] for r in rows):.3f}"
                   f"  traps {st.mean(r['traps'] for r in rows):.2f}"
@@ -108,6 +111,8 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--heldout", nargs="+", metavar="CKPT")
     p.add_argument("--episodes", type=int, default=48)
+    p.add_argument("--first", type=int, default=0, metavar="I",
+                   help="--heldout: score held-out episodes I .. I+episodes-1")
     p.add_argument("--budgets", type=float, nargs="+", default=[3.0],
                    help="--heldout: budgets to score (training selects at 3)")
     p.add_argument("--heldout-method", metavar="METHOD", nargs="+", default=[],
@@ -126,7 +131,8 @@ def main() -> None:
     keep_freed_memory()  # as the CLIs do (maipp_bench/allocator.py)
     torch.set_num_threads(1)
     if args.heldout:
-        heldout(args.heldout, args.episodes, args.budgets, args.heldout_method, args.cache)
+        heldout(args.heldout, args.episodes, args.budgets, args.heldout_method, args.cache,
+                args.first)
     if args.subset:
         if not (args.method and args.against):
             p.error("--subset needs --method and --against")

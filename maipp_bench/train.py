@@ -225,10 +225,11 @@ def greedy_method(name: str) -> MethodSpec:
 
 
 def heldout_rows(core: Any, env_cfg: MAIPPConfig, episodes: int, budget: float,
-                 method: MethodSpec) -> list[dict[str, Any]]:
-    """``method`` with the network ``core`` on the first ``episodes`` held-out seeds (never
-    the protocol's) at a fixed ``budget``: one result row per episode."""
-    seeds = [HELDOUT_SEED_BASE + i for i in range(episodes)]
+                 method: MethodSpec, first: int = 0) -> list[dict[str, Any]]:
+    """``method`` with the network ``core`` on ``episodes`` held-out seeds (never the
+    protocol's) from the ``first``-th on, at a fixed ``budget``: one result row per episode
+    (each episode's row depends on its own seed only, so ranges can be scored apart)."""
+    seeds = [HELDOUT_SEED_BASE + i for i in range(first, first + episodes)]
     eval_cfg = env_cfg.replace(budget=budget, budget_min=0.0, node_encoding_dim=0)
     device = next(core.parameters()).device  # where the network is, the episodes run
     return run_chunk(method, eval_cfg, seeds, trial_seed=HELDOUT_SEED_BASE, device=device,
