@@ -56,6 +56,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="torch threads per process (default 1: the batched tensors are small, "
                         "and contended OpenMP threads slow them down many times)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--fresh-board", action="store_true",
+                   help="full runs: write a board of this run's rows only (default: keep the "
+                        "other rows of the board found there that still belong to this code, "
+                        "each with the provenance of its run)")
     args = p.parse_args(argv)
     try:
         check_device(args.device, "--device")
@@ -229,14 +233,43 @@ def main(argv: list[str] | None = None) -> dict:
         print(f"note: {committed_path} unreadable ({err}); not compared", file=sys.stderr)
         committed = None
     target = Path(args.leaderboards) if subset is None else out_root / "leaderboards"
-    paths = leaderboard.write(board, target)
-    print(f"wrote {', '.join(str(p) for p in paths)}")
     if committed is not None:
         try:
             _report_reproduction(board, committed, committed_path)
         except (KeyError, TypeError) as err:  # a board of an older format
             print(f"note: {committed_path} not compared (missing {err})", file=sys.stderr)
+        if subset is None and committed.get("subset") is None and not args.fresh_board:
+            _keep_other_rows(board, committed)
+    paths = leaderboard.write(board, target)
+    print(f"wrote {', '.join(str(p) for p in paths)}")
     return board
+
+
+def _identity(method: str, checkpoint: str | None) -> tuple | None:
+    """This code's (fingerprint, checkpoint sha256) of a method whose checkpoint a board
+    recorded at ``checkpoint`` (a repo path for shipped files); None if unknown."""
+    try:
+        fingerprint = algos.get_method(method).fingerprint()
+    except ValueError:
+        return None
+    if checkpoint is None:
+        return fingerprint, None
+    found = [p for p in (Path(checkpoint), Path(algos.__file__).parents[2] / checkpoint)
+             if p.is_file()]
+    return fingerprint, file_sha256(found[0]) if found else None
+
+
+def _keep_other_rows(board: dict, committed: dict) -> None:
+    """Keep the found board's rows this run did not recompute (leaderboard.keep_rows)."""
+    kept, dropped = leaderboard.keep_rows(board, committed, _identity)
+    if kept:
+        methods = list(dict.fromkeys(m for m, _ in kept))
+        print(f"kept {len(kept)} rows of the board found there ({', '.join(methods)}); "
+              "--fresh-board drops them")
+    if dropped:
+        print(f"note: dropped {len(dropped)} rows of the board found there that no longer "
+              f"belong to this code (method version, checkpoint or protocol changed): "
+              f"{dropped}", file=sys.stderr)
 
 
 def _report_reproduction(board: dict, committed: dict, path: Path) -> None:

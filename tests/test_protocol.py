@@ -184,3 +184,41 @@ def test_episode_subset_is_marked_and_kept_apart(tmp_path):
     assert not (tmp_path / "lb").exists()  # subsets never overwrite leaderboards
     assert (tmp_path / "res" / "subset-2" / "leaderboards" / "smoke.md").read_text().count(
         "Quick subset")
+
+
+def test_scoring_some_methods_keeps_the_other_rows_with_their_provenance(
+        smoke_board, tmp_path, monkeypatch, capsys):
+    board, tmp = smoke_board
+    shutil.copytree(tmp / "lb", tmp_path / "lb")  # the committed board: random and greedy
+    shutil.copytree(tmp / "res", tmp_path / "res")
+    (tmp_path / "res" / "smoke" / "random.jsonl").unlink()  # random is scored again
+    again = _run(tmp_path, "--methods", "random")
+    assert [(r["method"], r["setting"]) for r in again["rows"]] == [
+        (r["method"], r["setting"]) for r in board["rows"]]  # same rows, same order
+    origin = {k: board[k] for k in leaderboard.PROVENANCE}
+    for old, new in zip(board["rows"], again["rows"]):
+        if new["method"] == "greedy":  # kept as they were, with the run that made them
+            assert new == {**old, "provenance": origin}
+        else:
+            assert "provenance" not in new
+            assert {k: v for k, v in new.items() if k not in leaderboard.TIMING_FIELDS} == {
+                k: v for k, v in old.items() if k not in leaderboard.TIMING_FIELDS}
+    assert again["method_sha256"] == board["method_sha256"]
+    assert json.loads((tmp_path / "lb" / "smoke.json").read_text())["rows"] == again["rows"]
+    assert "Rows of `greedy` kept from an earlier run" in (tmp_path / "lb" / "smoke.md").read_text()
+    assert "kept 2 rows" in capsys.readouterr().out
+    # Kept again by a later run: the provenance stays the first run's.
+    assert _run(tmp_path, "--methods", "random")["rows"][-1]["provenance"] == origin
+
+    # Rows of a changed algorithm are dropped, not carried; --fresh-board drops them all.
+    monkeypatch.setattr(algos.POLICIES["greedy"], "version", 99, raising=False)
+    shutil.copytree(tmp / "lb", tmp_path / "lb2")
+    changed = eval_main(["--suite", "smoke", "--methods", "random", "--out",
+                         str(tmp_path / "res"), "--leaderboards", str(tmp_path / "lb2"),
+                         "--no-progress"])
+    assert {r["method"] for r in changed["rows"]} == {"random"}
+    assert "dropped 2 rows" in capsys.readouterr().err
+    monkeypatch.undo()
+    fresh = _run(tmp_path, "--methods", "random", "--fresh-board")
+    assert {r["method"] for r in fresh["rows"]} == {"random"}
+    assert set(fresh["method_sha256"]) == {"random"}

@@ -14,6 +14,7 @@ import math
 import os
 import platform
 import subprocess
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -135,6 +136,55 @@ def reproduces(board: dict[str, Any], committed: dict[str, Any], rel: float = 1e
     return out
 
 
+PROVENANCE = ("git_commit", "date", "machine", "command")
+
+
+def keep_rows(board: dict[str, Any], committed: dict[str, Any],
+              identity: Callable[[str, str | None], tuple | None]) -> tuple[list, list]:
+    """Add to the full-run ``board`` the rows of the full ``committed`` board it did not
+    recompute, so that scoring some methods does not erase the others' rows.
+
+    A committed row is kept only while it still belongs to this code: same protocol file,
+    and ``identity(method, checkpoint_path)`` (this code's method fingerprint and the
+    sha256 of the file at the recorded checkpoint path; None for an unknown method) equals
+    what the committed board recorded. A kept row carries the ``provenance`` of the run
+    that computed it (commit, date, machine, command). Rows keep the committed order, a
+    recomputed row in its old place, new ones after. Returns ``(kept, dropped)``
+    (method, setting) pairs.
+    """
+    if board["subset"] is not None or committed["subset"] is not None:
+        raise ValueError("only full-run boards are merged")
+    mine = {(r["method"], r["setting"]): r for r in board["rows"]}
+    same_protocol = board["protocol"]["sha256"] == committed["protocol"]["sha256"]
+    rows, kept, dropped = [], [], []
+    checkpoints, fingerprints = {}, {}
+    for old in committed["rows"]:
+        key = (old["method"], old["setting"])
+        if key in mine:
+            rows.append(mine.pop(key))
+            continue
+        method = old["method"]
+        ckpt = committed.get("checkpoints", {}).get(method)
+        recorded = (committed.get("method_sha256", {}).get(method),
+                    ckpt and ckpt["sha256"])
+        if not same_protocol or identity(method, ckpt and ckpt["path"]) != recorded:
+            dropped.append(key)
+            continue
+        rows.append({**old, "provenance": old.get("provenance")
+                     or {k: committed[k] for k in PROVENANCE}})
+        kept.append(key)
+        fingerprints[method] = recorded[0]
+        if ckpt:
+            checkpoints[method] = ckpt
+    rows += mine.values()
+    order = list(dict.fromkeys(r["method"] for r in rows))
+    board["rows"] = rows
+    for field, extra in (("checkpoints", checkpoints), ("method_sha256", fingerprints)):
+        both = {**extra, **board.get(field, {})}
+        board[field] = {m: both[m] for m in order if m in both}
+    return kept, dropped
+
+
 def _paper_lookup(suite: Suite) -> dict[tuple, tuple[float, float]]:
     if not suite.paper_table:
         return {}
@@ -220,6 +270,18 @@ def markdown(board: dict[str, Any]) -> str:
         f"Produced by `{board['command']}`; data in `{board['suite']}.json`.",
         "",
     ]
+    earlier: dict[tuple, list[str]] = {}  # rows kept from earlier runs, by their run
+    for r in board["rows"]:
+        if "provenance" in r:
+            run = tuple(r["provenance"][k] for k in ("command", "git_commit", "date"))
+            methods = earlier.setdefault(run, [])
+            if r["method"] not in methods:
+                methods.append(r["method"])
+    for (command, commit, date), methods in earlier.items():
+        lines += [f"Rows of {', '.join(f'`{m}`' for m in methods)} kept from an earlier run: "
+                  f"`{command}` at `{commit[:10]}`, {date} (`provenance` in the JSON)."]
+    if earlier:
+        lines += [""]
     if board["subset"]:
         lines += ["**Quick subset, not the full protocol: do not compare with full rows.**", ""]
     for method, ckpt in board.get("checkpoints", {}).items():
