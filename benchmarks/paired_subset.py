@@ -97,7 +97,8 @@ def paired(subset: Path, suite: str, method: str, results: Path, against: list[s
     runs |= {f"{m} (full)": _rows(results / suite / f"{m}.jsonl") for m in against}
     ref = runs[f"{against[0]} (full)"]
     mine = next(iter(runs.values()))
-    for setting in sorted({k[0] for k in mine}):
+    # Settings every run has (baselines may have been rerun at some budgets only).
+    for setting in sorted(set.intersection(*({k[0] for k in r} for r in runs.values()))):
         keys = [k for k in mine if k[0] == setting]
         print(f"{setting}: {len(keys)} episodes")
         for name, rows in runs.items():
