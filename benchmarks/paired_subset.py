@@ -102,10 +102,18 @@ def paired(subset: Path, suite: str, method: str, results: Path, against: list[s
         keys = [k for k in mine if k[0] == setting]
         print(f"{setting}: {len(keys)} episodes")
         for name, rows in runs.items():
-            diff, se = _mean_se([rows[k]["trace"] - ref[k]["trace"] for k in keys])
+            d = {k: rows[k]["trace"] - ref[k]["trace"] for k in keys}
+            diff, se = _mean_se(list(d.values()))
+            # Where the mean difference comes from: episodes with and without a trap.
+            split = [[v for k, v in d.items() if (rows[k]["traps"] > 0) == trapped]
+                     for trapped in (False, True)]
+            parts = "  ".join(f"{tag} {len(v)} eps {st.mean(v):+.2f}"
+                              for tag, v in zip(("untrapped", "trapped"), split) if v)
             print(f"  {name:32s} Tr(P_f) {st.mean(rows[k]['trace'] for k in keys):7.1f}"
+                  f" (median {st.median(rows[k]['trace'] for k in keys):.1f})"
                   f"  traps {st.mean(rows[k]['traps'] for k in keys):.2f}"
-                  f"  minus {against[0]} {diff:+6.2f} ± {se:.2f}")
+                  f"  minus {against[0]} {diff:+6.2f} ± {se:.2f}"
+                  f"  wins {sum(v < 0 for v in d.values())}  {parts}")
 
 
 def main() -> None:
