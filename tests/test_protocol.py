@@ -192,6 +192,9 @@ def test_scoring_some_methods_keeps_the_other_rows_with_their_provenance(
     shutil.copytree(tmp / "lb", tmp_path / "lb")  # the committed board: random and greedy
     shutil.copytree(tmp / "res", tmp_path / "res")
     (tmp_path / "res" / "smoke" / "random.jsonl").unlink()  # random is scored again
+    # The copied file, not the fixture's dict: another test may have rewritten the
+    # shared board since (same rows, a later date).
+    board = json.loads((tmp_path / "lb" / "smoke.json").read_text())
     again = _run(tmp_path, "--methods", "random")
     assert [(r["method"], r["setting"]) for r in again["rows"]] == [
         (r["method"], r["setting"]) for r in board["rows"]]  # same rows, same order
