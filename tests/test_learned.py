@@ -178,6 +178,55 @@ def test_ti_broadcasts_intents_unless_told_not_to(tiny_checkpoint, intents):
     assert bool(env.episode.intent_valid.any()) == intents
 
 
+def _unsafe_choices(tiny_checkpoint, **layer) -> tuple[int, int]:
+    """Decisions with a feasible slot under the risk buffer ``mu + 0.5 sd > 0.3`` (read
+    from the env's belief here), and how many of them chose a slot over it."""
+    from maipp_bench.envs import MAIPPEnv
+
+    env = MAIPPEnv(MAIPPConfig(n_agents=2, budget=2.0, n_nodes=40, k_neighbors=8),
+                   batch_size=[3])
+    policy = algos.POLICIES["attention"](env, torch.tensor([3, 4, 5]), mode="ti", rollouts=3,
+                                         depth=2, checkpoint=str(tiny_checkpoint), **layer)
+    td, g2 = env.reset(), env.config.n_grid
+    checked = over = 0
+    while not bool(td.get("done").all()):
+        st = env.episode
+        td = policy(td)
+        for e, a in st.deciding.nonzero().tolist():
+            nbr = st.roadmap.neighbors[e, st.cur[e, a]]
+            g = env.agent_belief_index[a]
+            mu = st.belief.mu[e, g, g2 + nbr, 1]
+            sd = st.belief.sigma2[e, g, g2 + nbr].clamp_min(0).sqrt()
+            unsafe = mu + 0.5 * sd > 0.3
+            if bool((td.get(("agents", "action_mask"))[e, a] & ~unsafe).any()):
+                checked += 1
+                over += bool(unsafe[td.get(("agents", "action"))[e, a]])
+        td = env.step(td)["next"]
+    return checked, over
+
+
+def test_ti_safety_layer_picks_the_best_safe_rollout():
+    from maipp_bench.algos.rollouts import Rollouts
+
+    first = torch.tensor([[0, 1, 2], [1, 1, 0], [2, 2, 2]])
+    trace = torch.tensor([[1.0, 2.0, 3.0], [1.0, 2.0, 3.0], [3.0, 2.0, 1.0]], dtype=torch.float64)
+    unsafe = torch.tensor([[True, False, False], [False, True, False], [True, True, True]])
+    ro = Rollouts(first=first, trace=trace, nodes=torch.zeros(3, 3, 2),
+                  valid=torch.ones(3, 3, dtype=torch.bool))
+    assert ro.best_first().tolist() == [0, 1, 2]
+    ro.reject(unsafe)
+    # Row 0: slot 0 is unsafe, the best safe rollout starts at 1; row 1: only slot 0 is
+    # safe; row 2: every rollout starts unsafe, TI's choice stands.
+    assert ro.best_first().tolist() == [1, 0, 2]
+
+
+def test_ti_safety_layer_steers_moves_under_its_risk_buffer(tiny_checkpoint):
+    checked, over = _unsafe_choices(tiny_checkpoint, safe_risk=0.3, safe_beta=0.5)
+    checked_free, over_free = _unsafe_choices(tiny_checkpoint)
+    assert checked > 20 and checked_free > 20
+    assert over / checked < over_free / checked_free
+
+
 def test_missing_checkpoint_and_bad_mode_are_clear_errors(tiny_checkpoint):
     from maipp_bench.envs import MAIPPEnv
 
@@ -187,6 +236,11 @@ def test_missing_checkpoint_and_bad_mode_are_clear_errors(tiny_checkpoint):
         algos.POLICIES["attention"](env, seeds, checkpoint="/nonexistent/x.pt")
     with pytest.raises(ValueError, match="mode"):
         algos.POLICIES["attention"](env, seeds, checkpoint=str(tiny_checkpoint), mode="beam")
+    with pytest.raises(ValueError, match="needs mode 'ti'"):
+        algos.POLICIES["attention"](env, seeds, checkpoint=str(tiny_checkpoint), safe_risk=0.5)
+    with pytest.raises(ValueError, match="safe_beta"):
+        algos.POLICIES["attention"](env, seeds, checkpoint=str(tiny_checkpoint), mode="ti",
+                                    safe_risk=0.5, safe_beta=-1.0)
 
 
 @pytest.mark.parametrize("override, message", [

@@ -42,6 +42,12 @@ class LearnedPolicy(PlannerPolicy):
         rollouts, depth: TI(a, j) (paper: TI(8, 5)).
         intents: whether TI broadcasts its intents (False: a diagnostic that plans with TI
             but tells the teammates nothing, to measure what intents are worth).
+        safe_risk, safe_beta: TI's safety layer (paper: a layer that rejects candidate
+            trajectories which may enter non-recoverable terrain): a rollout whose first node
+            has risk belief ``mu_rk + safe_beta * sigma_rk > safe_risk`` cannot be chosen
+            unless all of them have (the env's mask stays the hard rule). A buffer below
+            the mask's threshold (0.7), because true risk above the trap threshold hides
+            behind beliefs below it. None: no layer; without risk it has nothing to do.
         core: an in-memory network (periodic evaluation during training).
     """
 
@@ -51,18 +57,24 @@ class LearnedPolicy(PlannerPolicy):
 
     def __init__(self, env: MAIPPEnv, seeds: torch.Tensor, checkpoint: str | None = None,
                  mode: str = "greedy", rollouts: int = 8, depth: int = 5,
-                 intents: bool = True, core: AttentionCore | None = None) -> None:
+                 intents: bool = True, safe_risk: float | None = None, safe_beta: float = 0.0,
+                 core: AttentionCore | None = None) -> None:
         super().__init__(env, seeds)
         if mode not in MODES:
             raise ValueError(f"mode={mode!r}; valid: {list(MODES)}")
         if rollouts < 1 or depth < 1:
             raise ValueError(f"TI(a, j) needs a >= 1 and j >= 1, got ({rollouts}, {depth})")
+        if safe_risk is not None and mode != "ti":
+            raise ValueError(f"safe_risk={safe_risk}: the safety layer picks among TI's "
+                             f"rollouts and needs mode 'ti' (got {mode!r})")
+        if safe_beta < 0:
+            raise ValueError(f"safe_beta={safe_beta}: must be >= 0")
         if core is None:
             if checkpoint is None:
                 raise ValueError("a learned method needs a checkpoint (path or shipped name)")
             core, _ = load_core(checkpoint, env.device)
         self.core, self.mode, self.rollouts, self.depth = core, mode, rollouts, depth
-        self.intents = intents
+        self.intents, self.safe_risk, self.safe_beta = intents, safe_risk, safe_beta
         self.hidden: torch.Tensor | None = None
         self.encoding: torch.Tensor | None = None
 
@@ -120,7 +132,18 @@ class LearnedPolicy(PlannerPolicy):
         gumbel = gumbel_noise(u).reshape(-1, self.depth, k)  # row b * a + r: rollout r of b
         rollouts = fantasy_rollouts(self.core, self.env, rows, logits, hidden, e_idx, a_idx,
                                     gumbel)
+        if self.safe_risk is not None and self.env.config.risk_enabled:
+            rollouts.reject(self._unsafe(rows, e_idx, a_idx))
         return (rollouts.best_first(), *rollouts.intent(self.env.config.intent_cov_floor))
+
+    def _unsafe(self, rows, e_idx, a_idx) -> torch.Tensor:
+        """``[B, k]``: neighbour slots the safety layer rejects (on each agent's own belief)."""
+        st, g2 = self.env.episode, self.env.config.n_grid
+        g_idx = self.env.agent_belief_index[a_idx]
+        nbr = rows.get("neighbors") + g2  # [B, k] query rows of the neighbour nodes
+        mu = st.belief.mu[e_idx, g_idx, :, 1].gather(1, nbr)
+        sd = st.belief.sigma2[e_idx, g_idx].gather(1, nbr).clamp_min(0).sqrt()
+        return mu + self.safe_beta * sd > self.safe_risk
 
 
 # The constructor's defaults, which a method YAML's omitted params take.

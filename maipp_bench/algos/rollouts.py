@@ -62,6 +62,13 @@ class Rollouts:
         best = self.trace.argmin(-1, keepdim=True)
         return self.first.gather(1, best).squeeze(-1)
 
+    def reject(self, unsafe: torch.Tensor) -> None:
+        """TI's safety layer: a rollout whose first slot is ``unsafe [B, k]`` can no longer
+        be best, unless every rollout of its agent is (then TI's choice stands: the layer
+        picks among what the policy sampled, and the intent still describes it)."""
+        bad = unsafe.gather(1, self.first)
+        self.trace = torch.where(bad & ~bad.all(-1, keepdim=True), torch.inf, self.trace)
+
     def intent(self, cov_floor: float) -> tuple[torch.Tensor, torch.Tensor]:
         """The Gaussian fitted to all sampled nodes: mean ``[B, 2]``, covariance ``[B, 2, 2]``."""
         return fit_intent(self.nodes, self.valid, cov_floor)
