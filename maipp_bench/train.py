@@ -106,7 +106,11 @@ class TrainConfig:
     # fine-tuning, with a fresh optimizer and update count. Ignored when resuming.
     init: str | None = None
     export: str | None = None  # at the end: write the policy file + JSON card here
-    export_from: str = "best"  # best (lowest held-out eval Tr(P); else last) | last
+    # best (lowest held-out eval Tr(P); else last) | last | N: the snapshot of update N
+    # (keep_snapshots=true), e.g. one chosen afterwards with benchmarks/paired_subset.py;
+    # resume=<run>/checkpoint.pt total_updates=0 exports from a finished run.
+    export_from: str = "best"
+    export_note: str = ""  # how the exported update was chosen (written into the card)
     progress: bool = True
 
 
@@ -344,6 +348,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
         raise ValueError("env.node_encoding_dim must be >= 1: the network reads the "
                          "roadmap's Laplacian encoding (paper: 32)")
     spec, _ = eval_spec(cfg)  # a bad eval_method / eval_budgets fails now, not later
+    check_export_from(cfg.export_from)
     check_training_intents(cfg.algo)
     warn_unseen_intents(cfg, spec)
     # Disjoint from every protocol seed, so training never sees the leaderboard's episodes.
@@ -453,37 +458,71 @@ def train(cfg: Any, run_dir: Path) -> Path:
     bar.close()
     collector.shutdown()
     if cfg.export:
-        if cfg.export_from not in ("best", "last"):
-            raise ValueError(f"export_from={cfg.export_from!r}; valid: ['best', 'last']")
-        best_path = ckpt_path.parent / "best.pt"
-        source = best_path if cfg.export_from == "best" and best_path.exists() else ckpt_path
-        write_card(cfg, source, ckpt_path, Path(cfg.export))
+        write_card(cfg, export_source(cfg.export_from, ckpt_path), ckpt_path,
+                   Path(cfg.export))
     return ckpt_path
 
 
+def check_export_from(export_from: Any) -> None:
+    """A clear error for a bad ``export_from`` (before training, not after it)."""
+    if str(export_from) not in ("best", "last") and not str(export_from).isdigit():
+        raise ValueError(f"export_from={export_from!r}; valid: best, last, or the update "
+                         f"number of a kept snapshot (keep_snapshots=true)")
+
+
+def export_source(export_from: Any, last: Path) -> Path:
+    """The file ``export_from`` names in the run of checkpoint ``last``: best.pt (if
+    held-out evaluation made one), the checkpoint itself, or snapshots/update_N.pt."""
+    check_export_from(export_from)
+    if str(export_from) in ("best", "last"):
+        best = last.parent / "best.pt"
+        return best if export_from == "best" and best.exists() else last
+    path = last.parent / "snapshots" / f"update_{int(export_from):04d}.pt"
+    if not path.exists():
+        kept = sorted(int(p.stem.split("_")[1]) for p in path.parent.glob("update_*.pt"))
+        raise FileNotFoundError(f"export_from={export_from}: no {path}; snapshots kept "
+                                f"(keep_snapshots=true) at updates {kept}")
+    return path
+
+
 def write_card(cfg: Any, source: Path, last: Path, out: Path) -> None:
-    """The shipped policy file (weights of ``source``: the best or the last checkpoint) and
-    its JSON card: commands, seed, commit, wall time, machine and the run's whole curve."""
-    export_policy(source, out)
-    chosen = torch.load(out, map_location="cpu", weights_only=False)
+    """The shipped policy file (weights of ``source``: the best or the last checkpoint, or a
+    snapshot) and its JSON card: commands, seed, commit, wall time, machine and curve.
+
+    A best or last checkpoint's card describes the whole run. A snapshot's describes the
+    network it holds: the commands, frames, wall time and curve up to its update (the
+    policy file keeps that curve too), plus how far the run went on and the command that
+    exported it."""
+    chosen = torch.load(source, map_location="cpu", weights_only=False)
     state = torch.load(last, map_location="cpu", weights_only=False)
+    snapshot = "curve" not in chosen  # snapshots are slim policy files
+    if snapshot:
+        curve = [r for r in state["curve"] if r["update"] <= chosen["update"]]
+        atomic_save({**chosen, "curve": curve}, out)
+        run, how = chosen, f"snapshot (keep_snapshots=true) of the run's update {chosen['update']}"
+    else:
+        export_policy(source, out)
+        curve, run = state["curve"], state
+        how = "lowest held-out Tr(P) (eval/trace) of " + row_tag(
+            next(r for r in curve if r["update"] == chosen["update"]), state) \
+            if chosen["update"] != state["update"] or source != last else "last update"
     card = {
         "algo": cfg.algo.name,
-        "command": state["commands"][0],
-        "resumed_with": state["commands"][1:],
-        "seed": cfg.seed,
+        "command": run["commands"][0],
+        "resumed_with": run["commands"][1:],
+        "seed": run["config"]["seed"],
         "commit": _commit(),
-        "updates": state["update"],
+        "updates": run["update"],
         "selected_update": chosen["update"],
-        "selected_by": "lowest held-out Tr(P) (eval/trace) of "
-        + row_tag(next(r for r in state["curve"] if r["update"] == chosen["update"]), state)
-        if chosen["update"] != state["update"] or source != last else "last update",
-        "frames": state["frames"],
-        "wall_s": state["wall_s"],
+        "selected_by": f"{how}, {cfg.export_note}" if cfg.export_note else how,
+        "frames": run["frames"],
+        "wall_s": run["wall_s"],
         "machine": f"{platform.machine()} {platform.processor() or ''}".strip()
         + f", {torch.get_num_threads()} torch thread(s), device {cfg.device}",
-        "curve": state["curve"],
     }
+    if snapshot:
+        card |= {"run_continued_to": state["update"], "exported_with": _command()}
+    card["curve"] = curve
     out.with_suffix(".json").write_text(json.dumps(card, indent=1) + "\n")
 
 

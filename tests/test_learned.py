@@ -567,3 +567,26 @@ def test_snapshots_keep_every_evaluated_update(tiny_checkpoint, tmp_path):
     last, _ = load_core(snaps[-1])
     final = torch.load(run / "checkpoint.pt", weights_only=False)["core"]
     assert all(torch.equal(t, final[n]) for n, t in last.state_dict().items())
+
+    # A kept snapshot exported afterwards from the finished run: its weights, the curve
+    # up to it (in the file and the card), and the note on how it was chosen.
+    import json
+
+    out = tmp_path / "shipped" / "snap.pt"
+    train(compose_train(*TINY_TRAIN, f"resume={run / 'checkpoint.pt'}", "total_updates=0",
+                        f"export={out}", "export_from=2", "export_note=picked by hand"), run)
+    core, payload = load_core(out)
+    snap2, _ = load_core(snaps[0])
+    assert all(torch.equal(t, snap2.state_dict()[n]) for n, t in core.state_dict().items())
+    card = json.loads(out.with_suffix(".json").read_text())
+    assert card["selected_update"] == card["updates"] == payload["update"] == 2
+    assert [r["update"] for r in card["curve"]] == [r["update"] for r in payload["curve"]] == [
+        1, 2]
+    assert card["run_continued_to"] == 4 and "exported_with" in card  # (argv: pytest's here)
+    assert card["selected_by"].endswith("update 2, picked by hand")
+    assert torch.load(run / "checkpoint.pt", weights_only=False)["update"] == 4  # untouched
+    with pytest.raises(FileNotFoundError, match=r"updates \[2, 4\]"):
+        train(compose_train(*TINY_TRAIN, f"resume={run / 'checkpoint.pt'}",
+                            "total_updates=0", f"export={out}", "export_from=3"), run)
+    with pytest.raises(ValueError, match="export_from='newest'"):
+        train(compose_train(*TINY_TRAIN, "export_from=newest"), tmp_path / "bad")
