@@ -25,16 +25,19 @@ from maipp_bench.envs.maipp_env import MAIPPEnv
 from maipp_bench.protocol.runner import method_seeds, task_config
 from maipp_bench.train import HELDOUT_SEED_BASE
 
-SD_BINS = (0.0, 0.3, 0.5, 0.7, 0.8, 0.9, 1.01)
-MEAN_BINS = (-1.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.71)
+INF = float("inf")
+SD_BINS = (0.0, 0.3, 0.5, 0.7, 0.8, 0.9, INF)
+MEAN_BINS = (-INF, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, INF)
 
 
 @torch.no_grad()
 def moves(method: str, budget: float, episodes: int) -> tuple[torch.Tensor, ...]:
     """Risk mean, sd and true risk at the target of every move of ``method`` (checkpoint
     as registered) on held-out episodes; moves of trapped agents or ended episodes are left
-    out (their actions are never read)."""
+    out (their actions are never read; trapped agents never decide)."""
     spec = get_method(method)
+    if not spec.learned:
+        raise ValueError(f"--method {method}: a learned method (a checkpoint) is needed")
     core, payload = load_core(str(spec.checkpoint(None)))
     cfg = MAIPPConfig.from_dict(payload["env"]).replace(budget=budget, budget_min=0.0,
                                                         node_encoding_dim=0)
@@ -48,8 +51,7 @@ def moves(method: str, budget: float, episodes: int) -> tuple[torch.Tensor, ...]
     while not bool(td.get("done").all()):
         st = env.episode
         td = policy(td)
-        e, a = (st.deciding & ~st.trapped & ~td.get("done").reshape(-1, 1)).nonzero(
-            as_tuple=True)
+        e, a = (st.deciding & ~td.get("done").reshape(-1, 1)).nonzero(as_tuple=True)
         slot = td.get(("agents", "action"))[e, a]
         node = st.roadmap.neighbors[e, st.cur[e, a]].gather(1, slot.unsqueeze(1)).squeeze(1)
         g = env.agent_belief_index[a]
@@ -66,7 +68,7 @@ def table(name: str, values: torch.Tensor, trap: torch.Tensor, bins: tuple) -> N
     for lo, hi in zip(bins[:-1], bins[1:]):
         sel = (values >= lo) & (values < hi)
         n, t = int(sel.sum()), int((sel & trap).sum())
-        print(f"  [{lo:.2f}, {hi:.2f}) | {n:5d} | {t:3d} | {t / max(n, 1):.3f}")
+        print(f"  [{lo:5.2f}, {hi:5.2f}) | {n:5d} | {t:3d} | {t / max(n, 1):.3f}")
 
 
 def main() -> None:

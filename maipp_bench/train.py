@@ -349,6 +349,9 @@ def train(cfg: Any, run_dir: Path) -> Path:
                          "roadmap's Laplacian encoding (paper: 32)")
     spec, _ = eval_spec(cfg)  # a bad eval_method / eval_budgets fails now, not later
     check_export_from(cfg.export_from)
+    if not cfg.export and (cfg.export_from != "best" or cfg.export_note):
+        warnings.warn("export_from / export_note do nothing without export=<path>",
+                      stacklevel=2)
     check_training_intents(cfg.algo)
     warn_unseen_intents(cfg, spec)
     # Disjoint from every protocol seed, so training never sees the leaderboard's episodes.
@@ -367,6 +370,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
     start, frames, episodes, wall, curve = 0, 0, 0, 0.0, []
     best = math.inf  # lowest held-out eval Tr(P) so far (model selection never sees the protocol)
     commands = [_command()]  # every invocation that contributed, in order
+    commit = _commit()  # the code of the updates this invocation runs
     if cfg.resume:
         state = torch.load(cfg.resume, map_location=cfg.device, weights_only=False)
         learner.loss.load_state_dict(state["loss"])
@@ -384,6 +388,8 @@ def train(cfg: Any, run_dir: Path) -> Path:
         commands = state.get("commands", _hydra_command(Path(cfg.resume).parent)) + commands
         ckpt_path = Path(cfg.resume)
         run_dir = ckpt_path.parent
+    if cfg.export:  # a snapshot that will not exist is an error now, not after training
+        check_snapshot_export(cfg, start, ckpt_path)
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "curve.jsonl").write_text("".join(json.dumps(r) + "\n" for r in curve))
 
@@ -400,7 +406,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
             "loss": learner.loss.state_dict(), "optimizer": optim.state_dict(),
             "scheduler": sched.state_dict(), "algo": OmegaConf.to_container(cfg.algo),
             "env": env_cfg.to_dict(), "config": OmegaConf.to_container(cfg),
-            "commands": commands,
+            "commands": commands, "commit": commit,
         }
         atomic_save(slim(state) if policy_only else state, path)
 
@@ -470,6 +476,21 @@ def check_export_from(export_from: Any) -> None:
                          f"number of a kept snapshot (keep_snapshots=true)")
 
 
+def check_snapshot_export(cfg: Any, start: int, last: Path) -> None:
+    """``export_from=N`` must name a snapshot the run has kept (``N <= start``, the update
+    it resumes from) or will keep (an evaluated update of this run with keep_snapshots)."""
+    if not str(cfg.export_from).isdigit():
+        return
+    n = int(cfg.export_from)
+    if n <= start:
+        export_source(n, last)  # FileNotFoundError listing the kept ones
+    elif not (cfg.keep_snapshots and cfg.eval_every and n % cfg.eval_every == 0
+              and n <= cfg.total_updates):
+        raise ValueError(f"export_from={n}: this run keeps no snapshot of update {n} "
+                         f"(snapshots are kept with keep_snapshots=true at every eval_every="
+                         f"{cfg.eval_every}th update up to total_updates={cfg.total_updates})")
+
+
 def export_source(export_from: Any, last: Path) -> Path:
     """The file ``export_from`` names in the run of checkpoint ``last``: best.pt (if
     held-out evaluation made one), the checkpoint itself, or snapshots/update_N.pt."""
@@ -496,6 +517,7 @@ def write_card(cfg: Any, source: Path, last: Path, out: Path) -> None:
     chosen = torch.load(source, map_location="cpu", weights_only=False)
     state = torch.load(last, map_location="cpu", weights_only=False)
     snapshot = "curve" not in chosen  # snapshots are slim policy files
+    commands = (chosen if snapshot else state).get("commands") or _hydra_command(last.parent)
     if snapshot:
         curve = [r for r in state["curve"] if r["update"] <= chosen["update"]]
         atomic_save({**chosen, "curve": curve}, out)
@@ -508,10 +530,12 @@ def write_card(cfg: Any, source: Path, last: Path, out: Path) -> None:
             if chosen["update"] != state["update"] or source != last else "last update"
     card = {
         "algo": cfg.algo.name,
-        "command": run["commands"][0],
-        "resumed_with": run["commands"][1:],
+        "command": commands[0],
+        "resumed_with": commands[1:],
         "seed": run["config"]["seed"],
-        "commit": _commit(),
+        # The code of the network's last update where its file records it (checkpoints
+        # since 2026-11-25), else the code writing the card.
+        "commit": chosen.get("commit") or _commit(),
         "updates": run["update"],
         "selected_update": chosen["update"],
         "selected_by": f"{how}, {cfg.export_note}" if cfg.export_note else how,
@@ -521,7 +545,8 @@ def write_card(cfg: Any, source: Path, last: Path, out: Path) -> None:
         + f", {torch.get_num_threads()} torch thread(s), device {cfg.device}",
     }
     if snapshot:
-        card |= {"run_continued_to": state["update"], "exported_with": _command()}
+        card |= {"run_continued_to": state["update"], "exported_with": _command(),
+                 "exported_at_commit": _commit()}
     card["curve"] = curve
     out.with_suffix(".json").write_text(json.dumps(card, indent=1) + "\n")
 

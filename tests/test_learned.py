@@ -178,38 +178,12 @@ def test_ti_broadcasts_intents_unless_told_not_to(tiny_checkpoint, intents):
     assert bool(env.episode.intent_valid.any()) == intents
 
 
-def _unsafe_choices(tiny_checkpoint, **layer) -> tuple[int, int]:
-    """Decisions with a feasible slot under the risk buffer ``mu + 0.5 sd > 0.3`` (read
-    from the env's belief here), and how many of them chose a slot over it."""
-    from maipp_bench.envs import MAIPPEnv
-
-    env = MAIPPEnv(MAIPPConfig(n_agents=2, budget=2.0, n_nodes=40, k_neighbors=8),
-                   batch_size=[3])
-    policy = algos.POLICIES["attention"](env, torch.tensor([3, 4, 5]), mode="ti", rollouts=3,
-                                         depth=2, checkpoint=str(tiny_checkpoint), **layer)
-    td, g2 = env.reset(), env.config.n_grid
-    checked = over = 0
-    while not bool(td.get("done").all()):
-        st = env.episode
-        td = policy(td)
-        for e, a in st.deciding.nonzero().tolist():
-            nbr = st.roadmap.neighbors[e, st.cur[e, a]]
-            g = env.agent_belief_index[a]
-            mu = st.belief.mu[e, g, g2 + nbr, 1]
-            sd = st.belief.sigma2[e, g, g2 + nbr].clamp_min(0).sqrt()
-            unsafe = mu + 0.5 * sd > 0.3
-            if bool((td.get(("agents", "action_mask"))[e, a] & ~unsafe).any()):
-                checked += 1
-                over += bool(unsafe[td.get(("agents", "action"))[e, a]])
-        td = env.step(td)["next"]
-    return checked, over
-
-
 def test_ti_safety_layer_picks_the_best_safe_rollout():
     from maipp_bench.algos.rollouts import Rollouts
 
     first = torch.tensor([[0, 1, 2], [1, 1, 0], [2, 2, 2]])
-    trace = torch.tensor([[1.0, 2.0, 3.0], [1.0, 2.0, 3.0], [3.0, 2.0, 1.0]], dtype=torch.float64)
+    trace = torch.tensor([[1.0, 2.0, 3.0], [1.0, 2.0, 3.0], [3.0, 2.0, 1.0]],
+                         dtype=torch.float64)
     unsafe = torch.tensor([[True, False, False], [False, True, False], [True, True, True]])
     ro = Rollouts(first=first, trace=trace, nodes=torch.zeros(3, 3, 2),
                   valid=torch.ones(3, 3, dtype=torch.bool))
@@ -220,11 +194,42 @@ def test_ti_safety_layer_picks_the_best_safe_rollout():
     assert ro.best_first().tolist() == [1, 0, 2]
 
 
-def test_ti_safety_layer_steers_moves_under_its_risk_buffer(tiny_checkpoint):
-    checked, over = _unsafe_choices(tiny_checkpoint, safe_risk=0.3, safe_beta=0.5)
-    checked_free, over_free = _unsafe_choices(tiny_checkpoint)
-    assert checked > 20 and checked_free > 20
-    assert over / checked < over_free / checked_free
+@pytest.mark.parametrize("layer", [True, False])
+def test_ti_safety_layer_moves_under_its_buffer_whenever_a_rollout_does(
+        tiny_checkpoint, monkeypatch, layer):
+    """At every decision, with ``mu + 0.5 sd > 0.3`` read from the env's belief here: the
+    move is under the buffer whenever one of the sampled rollouts starts under it."""
+    from maipp_bench.algos import learned
+    from maipp_bench.envs import MAIPPEnv
+
+    sampled = []
+    real = learned.fantasy_rollouts
+    monkeypatch.setattr(learned, "fantasy_rollouts", lambda *a: sampled.append(
+        real(*a)) or sampled[-1])
+    env = MAIPPEnv(MAIPPConfig(n_agents=2, budget=2.0, n_nodes=40, k_neighbors=8),
+                   batch_size=[3])
+    params = {"safe_risk": 0.3, "safe_beta": 0.5} if layer else {}
+    policy = algos.POLICIES["attention"](env, torch.tensor([3, 4, 5]), mode="ti", rollouts=3,
+                                         depth=2, checkpoint=str(tiny_checkpoint), **params)
+    td, g2 = env.reset(), env.config.n_grid
+    could = over = 0
+    while not bool(td.get("done").all()):
+        st = env.episode
+        first = st.deciding.nonzero().tolist()
+        td = policy(td)
+        starts = sampled.pop().first.tolist() if first else []
+        for (e, a), slots in zip(first, starts):
+            nbr = st.roadmap.neighbors[e, st.cur[e, a]]
+            g = env.agent_belief_index[a]
+            mu = st.belief.mu[e, g, g2 + nbr, 1]
+            sd = st.belief.sigma2[e, g, g2 + nbr].clamp_min(0).sqrt()
+            unsafe = (mu + 0.5 * sd > 0.3).tolist()
+            if not all(unsafe[s] for s in slots):
+                could += 1
+                over += unsafe[int(td.get(("agents", "action"))[e, a])]
+        td = env.step(td)["next"]
+    assert could > 20
+    assert (over == 0) if layer else (over > 0)  # without the layer TI does move over it
 
 
 def test_missing_checkpoint_and_bad_mode_are_clear_errors(tiny_checkpoint):
@@ -241,6 +246,9 @@ def test_missing_checkpoint_and_bad_mode_are_clear_errors(tiny_checkpoint):
     with pytest.raises(ValueError, match="safe_beta"):
         algos.POLICIES["attention"](env, seeds, checkpoint=str(tiny_checkpoint), mode="ti",
                                     safe_risk=0.5, safe_beta=-1.0)
+    with pytest.raises(ValueError, match="read only with safe_risk"):
+        algos.POLICIES["attention"](env, seeds, checkpoint=str(tiny_checkpoint), mode="ti",
+                                    safe_beta=0.5)
 
 
 @pytest.mark.parametrize("override, message", [
@@ -590,3 +598,12 @@ def test_snapshots_keep_every_evaluated_update(tiny_checkpoint, tmp_path):
                             "total_updates=0", f"export={out}", "export_from=3"), run)
     with pytest.raises(ValueError, match="export_from='newest'"):
         train(compose_train(*TINY_TRAIN, "export_from=newest"), tmp_path / "bad")
+    # A snapshot this run will not keep is an error before training, not after it.
+    for extra in ([], ["keep_snapshots=true", "eval_every=2", "total_updates=2"]):
+        with pytest.raises(ValueError, match="keeps no snapshot of update 3"):
+            train(compose_train(*TINY_TRAIN, f"export={out}", "export_from=3", *extra),
+                  tmp_path / "bad")
+        assert not (tmp_path / "bad" / "checkpoint.pt").exists()
+    with pytest.warns(UserWarning, match="without export"):
+        train(compose_train(*TINY_TRAIN, "total_updates=0", "export_from=last"),
+              tmp_path / "noop")

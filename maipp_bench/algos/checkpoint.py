@@ -70,11 +70,13 @@ def load_core(checkpoint: str | Path, device: str | torch.device = "cpu"
 # it, and where it came from (no optimiser, schedule or loss state).
 POLICY_KEYS = ("format", "algo", "env", "core", "update", "frames", "wall_s", "config",
                "commands")
+OPTIONAL_KEYS = ("commit",)  # recorded since 2026-11-25
 
 
 def slim(state: dict[str, Any], *extra: str) -> dict[str, Any]:
     """The policy-file part of a training checkpoint's ``state`` (plus ``extra`` keys)."""
-    return {k: state[k] for k in (*POLICY_KEYS, *extra)}
+    return {k: state[k] for k in (*POLICY_KEYS, *extra)} | {
+        k: state[k] for k in OPTIONAL_KEYS if k in state}
 
 
 def export_policy(checkpoint: str | Path, out: str | Path) -> None:

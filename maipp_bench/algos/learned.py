@@ -45,7 +45,8 @@ class LearnedPolicy(PlannerPolicy):
         safe_risk, safe_beta: TI's safety layer (paper: a layer that rejects candidate
             trajectories which may enter non-recoverable terrain): a rollout whose first node
             has risk belief ``mu_rk + safe_beta * sigma_rk > safe_risk`` cannot be chosen
-            unless all of them have (the env's mask stays the hard rule). A buffer below
+            unless all of them have (the env's mask stays the hard rule); the intent is
+            still fitted to every sampled rollout, as without the layer. A buffer below
             the mask's threshold (0.7), because true risk above the trap threshold hides
             behind beliefs below it. None: no layer; without risk it has nothing to do.
         core: an in-memory network (periodic evaluation during training).
@@ -67,8 +68,9 @@ class LearnedPolicy(PlannerPolicy):
         if safe_risk is not None and mode != "ti":
             raise ValueError(f"safe_risk={safe_risk}: the safety layer picks among TI's "
                              f"rollouts and needs mode 'ti' (got {mode!r})")
-        if safe_beta < 0:
-            raise ValueError(f"safe_beta={safe_beta}: must be >= 0")
+        if safe_beta < 0 or (safe_beta and safe_risk is None):
+            raise ValueError(f"safe_beta={safe_beta}: must be >= 0, and is read only with "
+                             f"safe_risk (got {safe_risk})")
         if core is None:
             if checkpoint is None:
                 raise ValueError("a learned method needs a checkpoint (path or shipped name)")

@@ -64,8 +64,8 @@ class Rollouts:
 
     def reject(self, unsafe: torch.Tensor) -> None:
         """TI's safety layer: a rollout whose first slot is ``unsafe [B, k]`` can no longer
-        be best, unless every rollout of its agent is (then TI's choice stands: the layer
-        picks among what the policy sampled, and the intent still describes it)."""
+        be best, unless every rollout of its agent is (then TI's choice stands). The layer
+        only picks among what the policy sampled; the intent is still fitted to all of it."""
         bad = unsafe.gather(1, self.first)
         self.trace = torch.where(bad & ~bad.all(-1, keepdim=True), torch.inf, self.trace)
 
