@@ -15,15 +15,13 @@ from __future__ import annotations
 import argparse
 
 import torch
-from tensordict import TensorDict
 
 from maipp_bench.algos.checkpoint import load_core
 from maipp_bench.algos.registry import get_method
 from maipp_bench.allocator import keep_freed_memory
 from maipp_bench.envs.config import MAIPPConfig
 from maipp_bench.envs.maipp_env import MAIPPEnv
-from maipp_bench.protocol.runner import method_seeds, task_config
-from maipp_bench.train import HELDOUT_SEED_BASE
+from maipp_bench.train import heldout_rows
 
 INF = float("inf")
 SD_BINS = (0.0, 0.3, 0.5, 0.7, 0.8, 0.9, INF)
@@ -32,35 +30,30 @@ MEAN_BINS = (-INF, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, INF)
 
 @torch.no_grad()
 def moves(method: str, budget: float, episodes: int) -> tuple[torch.Tensor, ...]:
-    """Risk mean, sd and true risk at the target of every move of ``method`` (checkpoint
-    as registered) on held-out episodes; moves of trapped agents or ended episodes are left
-    out (their actions are never read; trapped agents never decide)."""
+    """Risk mean, sd and whether it traps, at the target of every move of ``method``
+    (checkpoint as registered) on training's held-out episodes; moves of ended episodes are
+    left out (their actions are never read; trapped agents never decide)."""
     spec = get_method(method)
     if not spec.learned:
         raise ValueError(f"--method {method}: a learned method (a checkpoint) is needed")
     core, payload = load_core(str(spec.checkpoint(None)))
-    cfg = MAIPPConfig.from_dict(payload["env"]).replace(budget=budget, budget_min=0.0,
-                                                        node_encoding_dim=0)
-    seeds = [HELDOUT_SEED_BASE + i for i in range(episodes)]
-    env = MAIPPEnv(task_config(spec, cfg), batch_size=[episodes])
-    td = env.reset(TensorDict(instance_seed=torch.tensor(seeds),
-                              trial_seed=torch.full((episodes,), HELDOUT_SEED_BASE),
-                              batch_size=[episodes]))
-    policy = spec.build(env, method_seeds(seeds, HELDOUT_SEED_BASE), core=core)
-    g2, out = cfg.n_grid, []
-    while not bool(td.get("done").all()):
-        st = env.episode
-        td = policy(td)
+    out = []
+
+    def record(env: MAIPPEnv, td) -> None:
+        st, g2 = env.episode, env.config.n_grid
         e, a = (st.deciding & ~td.get("done").reshape(-1, 1)).nonzero(as_tuple=True)
         slot = td.get(("agents", "action"))[e, a]
         node = st.roadmap.neighbors[e, st.cur[e, a]].gather(1, slot.unsqueeze(1)).squeeze(1)
         g = env.agent_belief_index[a]
+        traps = st.node_risk[e, node] >= env.config.trap_threshold
         out.append(torch.stack([st.belief.mu[e, g, g2 + node, 1],
                                 st.belief.sigma2[e, g, g2 + node].clamp_min(0).sqrt(),
-                                st.world.risk(st.roadmap.nodes)[e, node]], -1).double())
-        td = env.step(td)["next"]
-    mu, sd, true = torch.cat(out).unbind(-1)
-    return mu, sd, true >= cfg.trap_threshold
+                                traps], -1).double())
+
+    heldout_rows(core, MAIPPConfig.from_dict(payload["env"]), episodes, budget, spec,
+                 on_action=record)
+    mu, sd, traps = torch.cat(out).unbind(-1)
+    return mu, sd, traps.bool()
 
 
 def table(name: str, values: torch.Tensor, trap: torch.Tensor, bins: tuple) -> None:

@@ -229,15 +229,17 @@ def greedy_method(name: str) -> MethodSpec:
 
 
 def heldout_rows(core: Any, env_cfg: MAIPPConfig, episodes: int, budget: float,
-                 method: MethodSpec, first: int = 0) -> list[dict[str, Any]]:
+                 method: MethodSpec, first: int = 0,
+                 on_action: Any = None) -> list[dict[str, Any]]:
     """``method`` with the network ``core`` on ``episodes`` held-out seeds (never the
     protocol's) from the ``first``-th on, at a fixed ``budget``: one result row per episode
-    (each episode's row depends on its own seed only, so ranges can be scored apart)."""
+    (each episode's row depends on its own seed only, so ranges can be scored apart).
+    ``on_action``: see :func:`~maipp_bench.protocol.runner.run_chunk`."""
     seeds = [HELDOUT_SEED_BASE + i for i in range(first, first + episodes)]
     eval_cfg = env_cfg.replace(budget=budget, budget_min=0.0, node_encoding_dim=0)
     device = next(core.parameters()).device  # where the network is, the episodes run
     return run_chunk(method, eval_cfg, seeds, trial_seed=HELDOUT_SEED_BASE, device=device,
-                     core=core)
+                     on_action=on_action, core=core)
 
 
 def init_weights(learner: Learner, checkpoint: str, algo: Any, threshold: float) -> None:
@@ -348,7 +350,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
         raise ValueError("env.node_encoding_dim must be >= 1: the network reads the "
                          "roadmap's Laplacian encoding (paper: 32)")
     spec, _ = eval_spec(cfg)  # a bad eval_method / eval_budgets fails now, not later
-    check_export_from(cfg.export_from)
+    snapshot_update(cfg.export_from)  # a bad value fails now, not after training
     if not cfg.export and (cfg.export_from != "best" or cfg.export_note):
         warnings.warn("export_from / export_note do nothing without export=<path>",
                       stacklevel=2)
@@ -390,6 +392,10 @@ def train(cfg: Any, run_dir: Path) -> Path:
         run_dir = ckpt_path.parent
     if cfg.export:  # a snapshot that will not exist is an error now, not after training
         check_snapshot_export(cfg, start, ckpt_path)
+        if start >= cfg.total_updates and ckpt_path.exists():  # nothing to train: export
+            write_card(cfg, export_source(cfg.export_from, ckpt_path), ckpt_path,
+                       Path(cfg.export))
+            return ckpt_path
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "curve.jsonl").write_text("".join(json.dumps(r) + "\n" for r in curve))
 
@@ -469,19 +475,23 @@ def train(cfg: Any, run_dir: Path) -> Path:
     return ckpt_path
 
 
-def check_export_from(export_from: Any) -> None:
-    """A clear error for a bad ``export_from`` (before training, not after it)."""
-    if str(export_from) not in ("best", "last") and not str(export_from).isdigit():
+def snapshot_update(export_from: Any) -> int | None:
+    """The update of the snapshot ``export_from`` names (None for best / last); a clear
+    error for anything else."""
+    if str(export_from) in ("best", "last"):
+        return None
+    if not str(export_from).isdigit():
         raise ValueError(f"export_from={export_from!r}; valid: best, last, or the update "
                          f"number of a kept snapshot (keep_snapshots=true)")
+    return int(export_from)
 
 
 def check_snapshot_export(cfg: Any, start: int, last: Path) -> None:
     """``export_from=N`` must name a snapshot the run has kept (``N <= start``, the update
     it resumes from) or will keep (an evaluated update of this run with keep_snapshots)."""
-    if not str(cfg.export_from).isdigit():
+    n = snapshot_update(cfg.export_from)
+    if n is None:
         return
-    n = int(cfg.export_from)
     if n <= start:
         export_source(n, last)  # FileNotFoundError listing the kept ones
     elif not (cfg.keep_snapshots and cfg.eval_every and n % cfg.eval_every == 0
@@ -494,11 +504,11 @@ def check_snapshot_export(cfg: Any, start: int, last: Path) -> None:
 def export_source(export_from: Any, last: Path) -> Path:
     """The file ``export_from`` names in the run of checkpoint ``last``: best.pt (if
     held-out evaluation made one), the checkpoint itself, or snapshots/update_N.pt."""
-    check_export_from(export_from)
-    if str(export_from) in ("best", "last"):
+    n = snapshot_update(export_from)
+    if n is None:
         best = last.parent / "best.pt"
-        return best if export_from == "best" and best.exists() else last
-    path = last.parent / "snapshots" / f"update_{int(export_from):04d}.pt"
+        return best if str(export_from) == "best" and best.exists() else last
+    path = last.parent / "snapshots" / f"update_{n:04d}.pt"
     if not path.exists():
         kept = sorted(int(p.stem.split("_")[1]) for p in path.parent.glob("update_*.pt"))
         raise FileNotFoundError(f"export_from={export_from}: no {path}; snapshots kept "
@@ -517,14 +527,15 @@ def write_card(cfg: Any, source: Path, last: Path, out: Path) -> None:
     chosen = torch.load(source, map_location="cpu", weights_only=False)
     state = torch.load(last, map_location="cpu", weights_only=False)
     snapshot = "curve" not in chosen  # snapshots are slim policy files
-    commands = (chosen if snapshot else state).get("commands") or _hydra_command(last.parent)
+    run = chosen if snapshot else state  # what the card describes
+    commands = run.get("commands") or _hydra_command(last.parent)
     if snapshot:
         curve = [r for r in state["curve"] if r["update"] <= chosen["update"]]
         atomic_save({**chosen, "curve": curve}, out)
-        run, how = chosen, f"snapshot (keep_snapshots=true) of the run's update {chosen['update']}"
+        how = f"snapshot (keep_snapshots=true) of the run's update {chosen['update']}"
     else:
         export_policy(source, out)
-        curve, run = state["curve"], state
+        curve = state["curve"]
         how = "lowest held-out Tr(P) (eval/trace) of " + row_tag(
             next(r for r in curve if r["update"] == chosen["update"]), state) \
             if chosen["update"] != state["update"] or source != last else "last update"

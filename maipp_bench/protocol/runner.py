@@ -8,10 +8,11 @@ composition never changes, so a resumed run computes exactly what an uninterrupt
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import Any
 
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 
 from maipp_bench.algos.registry import MethodSpec
 from maipp_bench.envs import rng
@@ -41,9 +42,12 @@ def run_chunk(
     instance_seeds: list[int],
     trial_seed: int,
     device: str | torch.device = "cpu",
+    on_action: Callable[[MAIPPEnv, TensorDictBase], None] | None = None,
     **policy_kwargs: Any,
 ) -> list[dict[str, Any]]:
-    """Play one episode per instance (same trial seed) to the end; return the rows."""
+    """Play one episode per instance (same trial seed) to the end; return the rows.
+    ``on_action(env, td)``, if given, sees every step's actions before the env applies
+    them (diagnostics; not timed as planning)."""
     e = len(instance_seeds)
     env = MAIPPEnv(task_config(method, cfg), batch_size=[e], device=device)
     td = env.reset(TensorDict(
@@ -60,6 +64,8 @@ def run_chunk(
         t0 = time.perf_counter()
         td = policy(td)
         planning += time.perf_counter() - t0
+        if on_action is not None:
+            on_action(env, td)
         td = env.step(td)
         nxt = td.get("next")
         done = nxt.get("done").reshape(e)
