@@ -25,6 +25,9 @@ Usage:
         --budgets 2 3 4 5 --episodes 96 --cache outputs/heldout   # prints from the cache
     python benchmarks/paired_subset.py --heldout maipp_bench/checkpoints/ours.pt \\
         --heldout-method ours_ti ours_ti_no_intent --budgets 2 5   # what intents are worth
+    python benchmarks/paired_subset.py --heldout maipp_bench/checkpoints/ours.pt \\
+        --heldout-method ours_ti --budgets 5 --episodes 96 --cache outputs/heldout \\
+        --reference catnipp_ti=maipp_bench/checkpoints/catnipp.pt   # against a baseline
     python benchmarks/paired_subset.py --subset out/subset-60 --method ours_ti \\
         --against ours_ti catnipp_ti sga_rrt_0.3_0.4 oracle
 """
@@ -49,13 +52,15 @@ def _mean_se(values: list[float]) -> tuple[float, float]:
 
 
 def heldout(paths: list[str], episodes: int, budgets: list[float], methods: list[str],
-            cache: Path | None = None, first: int = 0) -> None:
+            cache: Path | None = None, first: int = 0,
+            reference: tuple[str, str] | None = None) -> None:
     """Each checkpoint played by each of ``methods`` (empty: training's model selection,
     greedy decoding) on the same held-out episodes per budget; paired differences to the
-    first (checkpoint, method). With ``cache``, each (checkpoint, method, budget,
-    episodes)'s rows are kept there and reused: budgets can run in separate processes.
-    ``first``: the held-out episodes from this one on (fresh episodes for a candidate
-    chosen on the earlier ones)."""
+    first (checkpoint, method), or to ``reference`` ``(method, checkpoint)`` played first
+    (a baseline of another network, e.g. ``catnipp_ti`` with ``catnipp.pt``). With
+    ``cache``, each (checkpoint, method, budget, episodes)'s rows are kept there and
+    reused: budgets can run in separate processes. ``first``: the held-out episodes from
+    this one on (fresh episodes for a candidate chosen on the earlier ones)."""
     from maipp_bench.algos.checkpoint import load_core
     from maipp_bench.algos.registry import get_method
     from maipp_bench.envs.config import MAIPPConfig
@@ -63,12 +68,16 @@ def heldout(paths: list[str], episodes: int, budgets: list[float], methods: list
     from maipp_bench.train import greedy_method, heldout_rows
 
     specs = [get_method(m) for m in methods] or [greedy_method("heldout")]
-    nets = {path: load_core(path) for path in paths}
-    shas = {path: file_sha256(Path(path))[:12] for path in paths}
+    pairs = list(itertools.product(paths, specs))
+    if reference:
+        pairs.insert(0, (reference[1], get_method(reference[0])))
+    nets = {path: load_core(path) for path, _ in pairs}
+    shas = {path: file_sha256(Path(path))[:12] for path in nets}
     for budget in budgets:
         print(f"budget {budget}: {episodes} held-out episodes from #{first}")
         ref: list[float] | None = None
-        for (path, (core, payload)), spec in itertools.product(nets.items(), specs):
+        for path, spec in pairs:
+            core, payload = nets[path]
             span = f"{episodes}" if first == 0 else f"{first}+{episodes}"
             file = cache and cache / f"{shas[path]}_{spec.name}_B{budget:g}_{span}.json"
             if file and file.exists():
@@ -82,10 +91,11 @@ def heldout(paths: list[str], episodes: int, budgets: list[float], methods: list
             trace = [r["trace"] for r in rows]
             ref = ref or trace
             diff, se = _mean_se([t - f for t, f in zip(trace, ref)])
+            wins = sum(t < f for t, f in zip(trace, ref))
             print(f"  {path} (update {payload.get('update')}), {spec.name}: "
                   f"Tr(P_f) {st.mean(trace):7.2f}  rmse {st.mean(r['rmse'] for r in rows):.3f}"
                   f"  traps {st.mean(r['traps'] for r in rows):.2f}"
-                  f"  minus first {diff:+6.2f} ± {se:.2f}", flush=True)
+                  f"  minus first {diff:+6.2f} ± {se:.2f}  wins {wins}", flush=True)
 
 
 def _rows(path: Path) -> dict[tuple, dict]:
@@ -128,6 +138,9 @@ def main() -> None:
                    help="--heldout: run these registered methods (e.g. ours_ti "
                         "ours_ti_no_intent) with each checkpoint instead of training's "
                         "greedy score")
+    p.add_argument("--reference", metavar="METHOD=CKPT",
+                   help="--heldout: play this (method, checkpoint) first and pair every row "
+                        "with it, e.g. catnipp_ti=maipp_bench/checkpoints/catnipp.pt")
     p.add_argument("--cache", type=Path, metavar="DIR",
                    help="--heldout: keep each checkpoint's rows per budget here and reuse them")
     p.add_argument("--subset", type=Path,
@@ -139,9 +152,15 @@ def main() -> None:
     args = p.parse_args()
     keep_freed_memory()  # as the CLIs do (maipp_bench/allocator.py)
     torch.set_num_threads(1)
+    reference = None
+    if args.reference:
+        method, sep, path = args.reference.partition("=")
+        if not (sep and method and path):
+            p.error(f"--reference {args.reference!r}: expected METHOD=CKPT")
+        reference = (method, path)
     if args.heldout:
         heldout(args.heldout, args.episodes, args.budgets, args.heldout_method, args.cache,
-                args.first)
+                args.first, reference)
     if args.subset:
         if not (args.method and args.against):
             p.error("--subset needs --method and --against")
