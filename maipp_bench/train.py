@@ -9,7 +9,7 @@ TorchRL replay buffer through ``ClipPPOLoss`` / ``MAPPOLoss``. Every
 ``<run>/checkpoint.pt``; ``resume=<path>`` continues it (same curve, same run folder).
 
 Config groups (``maipp_bench/conf``): ``algo`` (ours, catnipp, mappo), ``env``
-(risk_aware, tiny), ``logger`` (csv, wandb, tensorboard); any field can be overridden,
+(risk_aware, risk_unaware, tiny), ``logger`` (csv, wandb, tensorboard); any field can be overridden,
 e.g. ``python -m maipp_bench.train algo=catnipp n_envs=16 algo.lr=5e-5 env.budget=4``.
 """
 
