@@ -19,6 +19,7 @@ import dataclasses
 import json
 import math
 import platform
+import shlex
 import subprocess
 import sys
 import time
@@ -39,7 +40,14 @@ from torchrl.data.replay_buffers import SamplerWithoutReplacement
 from torchrl.envs import Compose, TensorDictPrimer, Transform, TransformedEnv
 from tqdm import tqdm
 
-from maipp_bench.algos.checkpoint import FORMAT, atomic_save, export_policy, load_core, slim
+from maipp_bench.algos.checkpoint import (
+    FORMAT,
+    atomic_save,
+    export_policy,
+    load_core,
+    resolve,
+    slim,
+)
 from maipp_bench.algos.decisions import decision_batch
 from maipp_bench.algos.learned import LearnedPolicy
 from maipp_bench.algos.modules import HIDDEN_KEY, TeamPolicy, decision_rows
@@ -50,7 +58,7 @@ from maipp_bench.allocator import keep_freed_memory
 from maipp_bench.envs import rng
 from maipp_bench.envs.config import MAIPPConfig, check_device
 from maipp_bench.envs.maipp_env import MAIPPEnv
-from maipp_bench.protocol.protocol import load_protocol
+from maipp_bench.protocol.protocol import file_sha256, load_protocol
 from maipp_bench.protocol.runner import run_chunk
 
 HELDOUT_SEED_BASE = 2**40  # periodic evaluation episodes: never the protocol's seeds
@@ -333,6 +341,42 @@ def _hydra_command(run_dir: Path) -> list[str]:
     return ["python -m maipp_bench.train " + " ".join(OmegaConf.load(path))]
 
 
+def _command_init(command: str) -> str | None:
+    """The ``init=`` of a training command (checkpoints written before the run's init was
+    stored in them)."""
+    return next((t[len("init="):] for t in shlex.split(command) if t.startswith("init=")),
+                None)
+
+
+def init_lineage(init: str | None) -> dict[str, Any] | None:
+    """What a run's ``init`` network was: its file's sha256, update, frames, wall time and
+    commands, and, if it was itself fine-tuned, its own ``init`` (nested), so a card
+    accounts for all the training behind a network. None without init."""
+    if not init:
+        return None
+    try:
+        path = resolve(init)
+    except FileNotFoundError:
+        return {"path": init, "found": False}
+    payload = torch.load(path, map_location="cpu", weights_only=False)
+    commands = payload.get("commands") or [""]
+    lineage = {"path": init, "sha256": file_sha256(path), "update": payload["update"],
+               "frames": payload["frames"], "wall_s": payload["wall_s"],
+               "command": commands[0], "resumed_with": commands[1:]}
+    parent = init_lineage(payload.get("init") or _command_init(commands[0]))
+    return lineage | {"init": parent} if parent else lineage
+
+
+def _with_init(card: dict[str, Any], lineage: dict[str, Any] | None, key: str) -> Any:
+    """``card[key]`` plus the same of every init behind it (None if one is unknown)."""
+    total = card[key]
+    while lineage:
+        if key not in lineage:
+            return None
+        total, lineage = total + lineage[key], lineage.get("init")
+    return total
+
+
 def _commit() -> str:
     try:
         return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
@@ -373,6 +417,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
     best = math.inf  # lowest held-out eval Tr(P) so far (model selection never sees the protocol)
     commands = [_command()]  # every invocation that contributed, in order
     commit = _commit()  # the code of the updates this invocation runs
+    init = cfg.init  # the network the run started from (kept through resumes)
     if cfg.resume:
         state = torch.load(cfg.resume, map_location=cfg.device, weights_only=False)
         learner.loss.load_state_dict(state["loss"])
@@ -388,6 +433,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
             if row is not None and row_tag(row, state) == eval_tag(cfg):
                 best = row["eval/trace"]  # else a new evaluation: the selection restarts
         commands = state.get("commands", _hydra_command(Path(cfg.resume).parent)) + commands
+        init = state.get("init") or _command_init(commands[0])
         ckpt_path = Path(cfg.resume)
         run_dir = ckpt_path.parent
     if cfg.export:  # a snapshot that will not exist is an error now, not after training
@@ -412,7 +458,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
             "loss": learner.loss.state_dict(), "optimizer": optim.state_dict(),
             "scheduler": sched.state_dict(), "algo": OmegaConf.to_container(cfg.algo),
             "env": env_cfg.to_dict(), "config": OmegaConf.to_container(cfg),
-            "commands": commands, "commit": commit,
+            "commands": commands, "commit": commit, "init": init,
         }
         atomic_save(slim(state) if policy_only else state, path)
 
@@ -558,6 +604,10 @@ def write_card(cfg: Any, source: Path, last: Path, out: Path) -> None:
     if snapshot:
         card |= {"run_continued_to": state["update"], "exported_with": _command(),
                  "exported_at_commit": _commit()}
+    lineage = init_lineage(run.get("init") or _command_init(commands[0]))
+    if lineage:  # a fine-tune: what it started from, and the training behind it in all
+        card |= {"init": lineage, "frames_with_init": _with_init(card, lineage, "frames"),
+                 "wall_s_with_init": _with_init(card, lineage, "wall_s")}
     card["curve"] = curve
     out.with_suffix(".json").write_text(json.dumps(card, indent=1) + "\n")
 

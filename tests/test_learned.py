@@ -389,6 +389,7 @@ def test_export_writes_policy_and_card(tmp_path):
         assert key in card, key
     assert card["command"].startswith("python -m maipp_bench.train")
     assert len(card["curve"]) == 1 and card["updates"] == 1
+    assert "init" not in card  # trained from scratch
     core, _ = load_core(out)
     full, _ = load_core(path)
     for name, tensor in core.state_dict().items():
@@ -555,6 +556,38 @@ def test_init_starts_from_a_networks_weights(tiny_checkpoint, tmp_path):
     with pytest.raises(ValueError, match="is not this run's"):
         train(compose_train(*TINY_TRAIN, "total_updates=1", "algo.net.embed_dim=16",
                             f"init={tiny_checkpoint}"), tmp_path / "bad")
+
+
+def test_a_fine_tunes_card_accounts_for_the_network_it_started_from(tiny_checkpoint,
+                                                                    tmp_path):
+    import json
+
+    from maipp_bench.protocol.protocol import file_sha256
+    from maipp_bench.train import train
+
+    def card(name: str) -> dict:
+        return json.loads((tmp_path / f"{name}.json").read_text())
+
+    base = torch.load(tiny_checkpoint, weights_only=False)
+    run = train(compose_train(*TINY_TRAIN, "total_updates=1", f"init={tiny_checkpoint}",
+                              f"export={tmp_path / 'ft.pt'}"), tmp_path / "ft")
+    ft = card("ft")
+    assert ft["init"]["path"] == str(tiny_checkpoint)
+    assert ft["init"]["sha256"] == file_sha256(tiny_checkpoint)
+    assert ft["init"]["update"] == base["update"] == 2 and "init" not in ft["init"]
+    assert ft["frames_with_init"] == ft["frames"] + base["frames"] > ft["frames"]
+    assert ft["wall_s_with_init"] == pytest.approx(ft["wall_s"] + base["wall_s"])
+    # Resumed (without init= on its command line), the run still knows where it began.
+    train(compose_train(*TINY_TRAIN, f"resume={run}", "total_updates=2",
+                        f"export={tmp_path / 'ft2.pt'}"), tmp_path / "ft")
+    assert card("ft2")["init"] == ft["init"] and card("ft2")["updates"] == 2
+    # A fine-tune of the fine-tune: the whole chain, and the training behind it all.
+    train(compose_train(*TINY_TRAIN, "total_updates=1", f"init={tmp_path / 'ft.pt'}",
+                        f"export={tmp_path / 'ft3.pt'}"), tmp_path / "ft3")
+    ft3 = card("ft3")
+    assert ft3["init"]["sha256"] == file_sha256(tmp_path / "ft.pt")
+    assert ft3["init"]["init"]["sha256"] == file_sha256(tiny_checkpoint)
+    assert ft3["frames_with_init"] == ft3["frames"] + ft["frames"] + base["frames"]
 
 
 def test_snapshots_keep_every_evaluated_update(tiny_checkpoint, tmp_path):

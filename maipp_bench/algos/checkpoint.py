@@ -70,7 +70,7 @@ def load_core(checkpoint: str | Path, device: str | torch.device = "cpu"
 # it, and where it came from (no optimiser, schedule or loss state).
 POLICY_KEYS = ("format", "algo", "env", "core", "update", "frames", "wall_s", "config",
                "commands")
-OPTIONAL_KEYS = ("commit",)  # recorded since 2026-11-25
+OPTIONAL_KEYS = ("commit", "init")  # recorded since 2026-11-25
 
 
 def slim(state: dict[str, Any], *extra: str) -> dict[str, Any]:
