@@ -343,9 +343,12 @@ def _hydra_command(run_dir: Path) -> list[str]:
 
 def _command_init(command: str) -> str | None:
     """The ``init=`` of a training command (checkpoints written before the run's init was
-    stored in them)."""
-    return next((t[len("init="):] for t in shlex.split(command) if t.startswith("init=")),
-                None)
+    stored in them). Commands are stored as typed, so a quote may be unbalanced."""
+    try:
+        tokens = shlex.split(command)
+    except ValueError:
+        tokens = command.split()
+    return next((t[len("init="):] for t in tokens if t.startswith("init=")), None)
 
 
 def init_lineage(init: str | None) -> dict[str, Any] | None:

@@ -563,7 +563,12 @@ def test_a_fine_tunes_card_accounts_for_the_network_it_started_from(tiny_checkpo
     import json
 
     from maipp_bench.protocol.protocol import file_sha256
-    from maipp_bench.train import train
+    from maipp_bench.train import _command_init, train
+
+    # Older checkpoints: the init of the run's first command, as typed (quotes and all).
+    assert _command_init("python -m maipp_bench.train init=a.pt 'export_note=x y'") == "a.pt"
+    assert _command_init("python -m maipp_bench.train init=a.pt export_note='it's'") == "a.pt"
+    assert _command_init("python -m maipp_bench.train algo=ours") is None
 
     def card(name: str) -> dict:
         return json.loads((tmp_path / f"{name}.json").read_text())
