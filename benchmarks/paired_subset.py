@@ -98,12 +98,16 @@ def heldout(paths: list[str], episodes: int, budgets: list[float], methods: list
                   f"  minus first {diff:+6.2f} ± {se:.2f}  wins {wins}", flush=True)
 
 
-def _rows(path: Path) -> dict[tuple, dict]:
-    return {(r["setting"], r["instance"], r["trial"]): r for r in map(json.loads, open(path))}
+def _rows(path: Path, sha: str = "") -> dict[tuple, dict]:
+    """Rows by episode; with ``sha``, only those of the checkpoint whose sha256 starts so
+    (a results file keeps the rows of every checkpoint that was run)."""
+    return {(r["setting"], r["instance"], r["trial"]): r for r in map(json.loads, open(path))
+            if r.get("checkpoint_sha256", "").startswith(sha)}
 
 
-def paired(subset: Path, suite: str, method: str, results: Path, against: list[str]) -> None:
-    runs = {f"{method} ({subset.name})": _rows(subset / suite / f"{method}.jsonl")}
+def paired(subset: Path, suite: str, method: str, results: Path, against: list[str],
+           sha: str = "") -> None:
+    runs = {f"{method} ({subset.name})": _rows(subset / suite / f"{method}.jsonl", sha)}
     runs |= {f"{m} (full)": _rows(results / suite / f"{m}.jsonl") for m in against}
     ref = runs[f"{against[0]} (full)"]
     mine = next(iter(runs.values()))
@@ -147,6 +151,9 @@ def main() -> None:
                    help="rows kept apart: an eval --out folder (or its subset-N folder)")
     p.add_argument("--suite", default="risk_aware")
     p.add_argument("--method")
+    p.add_argument("--method-sha", default="", metavar="PREFIX",
+                   help="--subset: only --method's rows of the checkpoint whose sha256 "
+                        "starts so (e.g. --subset results and a candidate's rows)")
     p.add_argument("--results", type=Path, default=Path("results"))
     p.add_argument("--against", nargs="+", default=[])
     args = p.parse_args()
@@ -164,7 +171,8 @@ def main() -> None:
     if args.subset:
         if not (args.method and args.against):
             p.error("--subset needs --method and --against")
-        paired(args.subset, args.suite, args.method, args.results, args.against)
+        paired(args.subset, args.suite, args.method, args.results, args.against,
+               args.method_sha)
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ import subprocess
 import sys
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -238,7 +239,8 @@ def greedy_method(name: str) -> MethodSpec:
 
 def heldout_rows(core: Any, env_cfg: MAIPPConfig, episodes: int, budget: float,
                  method: MethodSpec, first: int = 0,
-                 on_action: Any = None) -> list[dict[str, Any]]:
+                 on_action: Callable[[MAIPPEnv, TensorDictBase], None] | None = None
+                 ) -> list[dict[str, Any]]:
     """``method`` with the network ``core`` on ``episodes`` held-out seeds (never the
     protocol's) from the ``first``-th on, at a fixed ``budget``: one result row per episode
     (each episode's row depends on its own seed only, so ranges can be scored apart).
@@ -341,9 +343,14 @@ def _hydra_command(run_dir: Path) -> list[str]:
     return ["python -m maipp_bench.train " + " ".join(OmegaConf.load(path))]
 
 
+def recorded_init(state: dict[str, Any]) -> str | None:
+    """The ``init`` a checkpoint's run started from: stored since 2026-11-25, else the
+    ``init=`` of its first command."""
+    return state.get("init") or _command_init((state.get("commands") or [""])[0])
+
+
 def _command_init(command: str) -> str | None:
-    """The ``init=`` of a training command (checkpoints written before the run's init was
-    stored in them). Commands are stored as typed, so a quote may be unbalanced."""
+    """The ``init=`` of a training command, as typed (a quote may be unbalanced)."""
     try:
         tokens = shlex.split(command)
     except ValueError:
@@ -366,7 +373,7 @@ def init_lineage(init: str | None) -> dict[str, Any] | None:
     lineage = {"path": init, "sha256": file_sha256(path), "update": payload["update"],
                "frames": payload["frames"], "wall_s": payload["wall_s"],
                "command": commands[0], "resumed_with": commands[1:]}
-    parent = init_lineage(payload.get("init") or _command_init(commands[0]))
+    parent = init_lineage(recorded_init(payload))
     return lineage | {"init": parent} if parent else lineage
 
 
@@ -436,7 +443,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
             if row is not None and row_tag(row, state) == eval_tag(cfg):
                 best = row["eval/trace"]  # else a new evaluation: the selection restarts
         commands = state.get("commands", _hydra_command(Path(cfg.resume).parent)) + commands
-        init = state.get("init") or _command_init(commands[0])
+        init = recorded_init(state)
         ckpt_path = Path(cfg.resume)
         run_dir = ckpt_path.parent
     if cfg.export:  # a snapshot that will not exist is an error now, not after training
@@ -607,7 +614,7 @@ def write_card(cfg: Any, source: Path, last: Path, out: Path) -> None:
     if snapshot:
         card |= {"run_continued_to": state["update"], "exported_with": _command(),
                  "exported_at_commit": _commit()}
-    lineage = init_lineage(run.get("init") or _command_init(commands[0]))
+    lineage = init_lineage(recorded_init(run))
     if lineage:  # a fine-tune: what it started from, and the training behind it in all
         card |= {"init": lineage, "frames_with_init": _with_init(card, lineage, "frames"),
                  "wall_s_with_init": _with_init(card, lineage, "wall_s")}
