@@ -4,6 +4,8 @@ Reads a run folder's ``curve.jsonl`` or a shipped checkpoint's JSON card and plo
 env frames, the final Tr(P) of the training episodes, the held-out evaluation's Tr(P)
 (greedy decoding unless the run's ``eval_method`` says otherwise) and the mean reward per
 decision. A card's selected update (the weights it exports) is marked by a dashed line.
+A fine-tune's card (one with ``init``) is drawn from the frames its starting network had
+already been trained on, so it continues that network's curve.
 """
 
 from __future__ import annotations
@@ -20,23 +22,32 @@ import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.ticker import FuncFormatter  # noqa: E402
 
 
+def init_frames(card: dict[str, Any]) -> int:
+    """Env frames of the training behind a fine-tune's starting network (0 without one)."""
+    return card.get("frames_with_init", card.get("frames", 0)) - card.get("frames", 0)
+
+
 def read_curve(source: str | Path) -> list[dict[str, Any]]:
-    """The curve rows of a run folder (``curve.jsonl``) or a checkpoint card (``.json``)."""
+    """The curve rows of a run folder (``curve.jsonl``) or a checkpoint card (``.json``);
+    a fine-tune card's ``frames`` count its starting network's training too."""
     path = Path(source)
     if path.is_dir():
         path = path / "curve.jsonl"
     if path.suffix == ".jsonl":
         return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    return json.loads(path.read_text())["curve"]
+    card = json.loads(path.read_text())
+    offset = init_frames(card)
+    return [r | {"frames": r["frames"] + offset} for r in card["curve"]]
 
 
 def selected_frames(source: str | Path) -> int | None:
-    """Env frames at the update a checkpoint card selected (None for a run folder)."""
+    """Env frames at the update a checkpoint card selected, counted as ``read_curve``
+    counts them (None for a run folder)."""
     path = Path(source)
     if path.is_dir() or path.suffix != ".json":
         return None
     card = json.loads(path.read_text())
-    at = [r["frames"] for r in card["curve"] if r["update"] == card.get("selected_update")]
+    at = [r["frames"] for r in read_curve(path) if r["update"] == card.get("selected_update")]
     return at[0] if at else None
 
 

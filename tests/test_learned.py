@@ -288,6 +288,17 @@ def test_training_curve_marks_the_shipped_update(tmp_path):
     assert (tmp_path / "c.png").stat().st_size > 5000
 
 
+def test_a_fine_tunes_curve_continues_from_its_starting_networks_frames(tmp_path):
+    from maipp_bench.curves import read_curve, selected_frames
+
+    card = tmp_path / "card.json"
+    curve = [{"update": u, "frames": 100 * u} for u in (1, 2, 3)]
+    card.write_text(json.dumps({"curve": curve, "selected_update": 2, "frames": 200,
+                                "init": {"frames": 5000}, "frames_with_init": 5200}))
+    assert [r["frames"] for r in read_curve(card)] == [5100, 5200, 5300]
+    assert selected_frames(card) == 5200
+
+
 def test_eval_panel_title_names_the_evaluations():
     from maipp_bench.curves import eval_title
 

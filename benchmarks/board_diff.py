@@ -1,0 +1,58 @@
+"""Unpaired differences of a leaderboard's means: the "difference of the board's means ±
+the unpaired standard error" figures of docs/results.md, read from a committed board
+alone (no stored episodes needed; ``paired_subset.py --subset`` gives the paired ones,
+which the shared worlds make smaller, where both methods' episodes are stored).
+
+For every setting of the board: ``--method``'s mean Tr(P_f) minus each ``--against``
+method's, ± sqrt(s1² / n1 + s2² / n2).
+
+Usage:
+    python benchmarks/board_diff.py --suite risk_aware --method ours_ti \\
+        --against sga_rrt_0.3_0.4 greedy catnipp_ti catnipp_greedy oracle
+    python benchmarks/board_diff.py --suite comm --method ours_ti --against oracle
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def differences(board: dict, method: str, against: list[str]) -> list[dict]:
+    """One dict per setting: ``setting``, ``mean`` of ``method`` and, per other method,
+    ``(difference, standard error)``; settings where ``method`` has no row are skipped."""
+    rows = {(r["method"], r["setting"]): r for r in board["rows"]}
+    missing = sorted({m for m in [method, *against]} - {m for m, _ in rows})
+    if missing:
+        raise SystemExit(f"not on the {board['suite']} board: {', '.join(missing)}")
+    out = []
+    for setting in dict.fromkeys(s for m, s in rows if m == method):
+        mine = rows[method, setting]
+        entry = {"setting": setting, "mean": mine["trace_mean"], "diff": {}}
+        for other in against:
+            theirs = rows.get((other, setting))
+            if theirs is None:
+                continue
+            se = (mine["trace_std"] ** 2 / mine["n"]
+                  + theirs["trace_std"] ** 2 / theirs["n"]) ** 0.5
+            entry["diff"][other] = (mine["trace_mean"] - theirs["trace_mean"], se)
+        out.append(entry)
+    return out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--suite", required=True)
+    p.add_argument("--method", required=True)
+    p.add_argument("--against", nargs="+", required=True)
+    p.add_argument("--leaderboards", default="leaderboards")
+    args = p.parse_args()
+    board = json.loads((Path(args.leaderboards) / f"{args.suite}.json").read_text())
+    for entry in differences(board, args.method, args.against):
+        cells = "  ".join(f"{m} {d:+.1f} ± {se:.1f}" for m, (d, se) in entry["diff"].items())
+        print(f"{entry['setting']:>28}  {args.method} {entry['mean']:.1f}  minus: {cells}")
+
+
+if __name__ == "__main__":
+    main()
