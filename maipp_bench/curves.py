@@ -47,7 +47,8 @@ def selected_frames(source: str | Path) -> int | None:
     if path.is_dir() or path.suffix != ".json":
         return None
     card = json.loads(path.read_text())
-    at = [r["frames"] for r in read_curve(path) if r["update"] == card.get("selected_update")]
+    offset = init_frames(card)
+    at = [r["frames"] + offset for r in card["curve"] if r["update"] == card.get("selected_update")]
     return at[0] if at else None
 
 
