@@ -44,6 +44,7 @@ from tqdm import tqdm
 from maipp_bench.algos.checkpoint import (
     FORMAT,
     atomic_save,
+    average_policies,
     export_policy,
     load_core,
     resolve,
@@ -404,7 +405,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
         raise ValueError("env.node_encoding_dim must be >= 1: the network reads the "
                          "roadmap's Laplacian encoding (paper: 32)")
     spec, _ = eval_spec(cfg)  # a bad eval_method / eval_budgets fails now, not later
-    snapshot_update(cfg.export_from)  # a bad value fails now, not after training
+    snapshot_span(cfg.export_from)  # a bad value fails now, not after training
     if not cfg.export and (cfg.export_from != "best" or cfg.export_note):
         warnings.warn("export_from / export_note do nothing without export=<path>",
                       stacklevel=2)
@@ -449,7 +450,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
     if cfg.export:  # a snapshot that will not exist is an error now, not after training
         check_snapshot_export(cfg, start, ckpt_path)
         if start >= cfg.total_updates and ckpt_path.exists():  # nothing to train: export
-            write_card(cfg, export_source(cfg.export_from, ckpt_path), ckpt_path,
+            write_card(cfg, export_sources(cfg.export_from, ckpt_path), ckpt_path,
                        Path(cfg.export))
             return ckpt_path
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -526,61 +527,75 @@ def train(cfg: Any, run_dir: Path) -> Path:
     bar.close()
     collector.shutdown()
     if cfg.export:
-        write_card(cfg, export_source(cfg.export_from, ckpt_path), ckpt_path,
+        write_card(cfg, export_sources(cfg.export_from, ckpt_path), ckpt_path,
                    Path(cfg.export))
     return ckpt_path
 
 
-def snapshot_update(export_from: Any) -> int | None:
-    """The update of the snapshot ``export_from`` names (None for best / last); a clear
-    error for anything else."""
-    if str(export_from) in ("best", "last"):
+def snapshot_span(export_from: Any) -> tuple[int, int] | None:
+    """The updates ``(first, last)`` of the snapshots ``export_from`` names: ``N`` one
+    snapshot, ``N-M`` the average of those kept from update N to M (None for best / last);
+    a clear error for anything else."""
+    text = str(export_from)
+    if text in ("best", "last"):
         return None
-    if not str(export_from).isdigit():
-        raise ValueError(f"export_from={export_from!r}; valid: best, last, or the update "
-                         f"number of a kept snapshot (keep_snapshots=true)")
-    return int(export_from)
+    ends = text.split("-")
+    if len(ends) > 2 or not all(e.isdigit() for e in ends) or int(ends[0]) > int(ends[-1]):
+        raise ValueError(f"export_from={export_from!r}; valid: best, last, the update N of a "
+                         f"kept snapshot (keep_snapshots=true), or N-M (N <= M): the average "
+                         f"of the snapshots kept from update N to M")
+    return int(ends[0]), int(ends[-1])
 
 
 def check_snapshot_export(cfg: Any, start: int, last: Path) -> None:
-    """``export_from=N`` must name a snapshot the run has kept (``N <= start``, the update
-    it resumes from) or will keep (an evaluated update of this run with keep_snapshots)."""
-    n = snapshot_update(cfg.export_from)
-    if n is None:
+    """``export_from=N`` (or ``N-M``) must name snapshots the run has kept (up to
+    ``start``, the update it resumes from) or will keep (evaluated updates of this run
+    with keep_snapshots)."""
+    span = snapshot_span(cfg.export_from)
+    if span is None:
         return
-    if n <= start:
-        export_source(n, last)  # FileNotFoundError listing the kept ones
-    elif not (cfg.keep_snapshots and cfg.eval_every and n % cfg.eval_every == 0
-              and n <= cfg.total_updates):
-        raise ValueError(f"export_from={n}: this run keeps no snapshot of update {n} "
-                         f"(snapshots are kept with keep_snapshots=true at every eval_every="
-                         f"{cfg.eval_every}th update up to total_updates={cfg.total_updates})")
+    if span[1] <= start:
+        export_sources(cfg.export_from, last)  # FileNotFoundError listing the kept ones
+        return
+    if span[0] <= start:
+        export_sources(span[0], last)
+    for n in sorted({span[0], span[1]} - set(range(start + 1))):
+        if not (cfg.keep_snapshots and cfg.eval_every and n % cfg.eval_every == 0
+                and n <= cfg.total_updates):
+            raise ValueError(f"export_from={cfg.export_from}: this run keeps no snapshot of "
+                             f"update {n} (snapshots are kept with keep_snapshots=true at "
+                             f"every eval_every={cfg.eval_every}th update up to "
+                             f"total_updates={cfg.total_updates})")
 
 
-def export_source(export_from: Any, last: Path) -> Path:
-    """The file ``export_from`` names in the run of checkpoint ``last``: best.pt (if
-    held-out evaluation made one), the checkpoint itself, or snapshots/update_N.pt."""
-    n = snapshot_update(export_from)
-    if n is None:
+def export_sources(export_from: Any, last: Path) -> list[Path]:
+    """The files ``export_from`` names in the run of checkpoint ``last``: best.pt (if
+    held-out evaluation made one) or the checkpoint itself; or the kept snapshots
+    snapshots/update_N.pt of its span (both ends must have been kept)."""
+    span = snapshot_span(export_from)
+    if span is None:
         best = last.parent / "best.pt"
-        return best if str(export_from) == "best" and best.exists() else last
-    path = last.parent / "snapshots" / f"update_{n:04d}.pt"
-    if not path.exists():
-        kept = sorted(int(p.stem.split("_")[1]) for p in path.parent.glob("update_*.pt"))
-        raise FileNotFoundError(f"export_from={export_from}: no {path}; snapshots kept "
-                                f"(keep_snapshots=true) at updates {kept}")
-    return path
+        return [best if str(export_from) == "best" and best.exists() else last]
+    folder = last.parent / "snapshots"
+    kept = sorted(int(p.stem.split("_")[1]) for p in folder.glob("update_*.pt"))
+    for n in span:
+        if n not in kept:
+            raise FileNotFoundError(f"export_from={export_from}: no "
+                                    f"{folder / f'update_{n:04d}.pt'}; snapshots kept "
+                                    f"(keep_snapshots=true) at updates {kept}")
+    return [folder / f"update_{n:04d}.pt" for n in kept if span[0] <= n <= span[1]]
 
 
-def write_card(cfg: Any, source: Path, last: Path, out: Path) -> None:
-    """The shipped policy file (weights of ``source``: the best or the last checkpoint, or a
-    snapshot) and its JSON card: commands, seed, commit, wall time, machine and curve.
+def write_card(cfg: Any, sources: list[Path], last: Path, out: Path) -> None:
+    """The shipped policy file (weights of ``sources``: the best or the last checkpoint, a
+    snapshot, or the average of several) and its JSON card: commands, seed, commit, wall
+    time, machine and curve.
 
     A best or last checkpoint's card describes the whole run. A snapshot's describes the
     network it holds: the commands, frames, wall time and curve up to its update (the
     policy file keeps that curve too), plus how far the run went on and the command that
-    exported it."""
-    chosen = torch.load(source, map_location="cpu", weights_only=False)
+    exported it; an average's is that of its last snapshot, with the updates averaged."""
+    chosen = average_policies(sources)
     state = torch.load(last, map_location="cpu", weights_only=False)
     snapshot = "curve" not in chosen  # snapshots are slim policy files
     run = chosen if snapshot else state  # what the card describes
@@ -588,13 +603,16 @@ def write_card(cfg: Any, source: Path, last: Path, out: Path) -> None:
     if snapshot:
         curve = [r for r in state["curve"] if r["update"] <= chosen["update"]]
         atomic_save({**chosen, "curve": curve}, out)
-        how = f"snapshot (keep_snapshots=true) of the run's update {chosen['update']}"
+        updates = chosen.get("averaged_updates", [chosen["update"]])
+        how = (f"snapshot (keep_snapshots=true) of the run's update {chosen['update']}"
+               if len(updates) == 1 else "uniform average of the weights of the run's "
+               f"snapshots (keep_snapshots=true) at updates {updates}")
     else:
-        export_policy(source, out)
+        export_policy(sources[0], out)
         curve = state["curve"]
         how = "lowest held-out Tr(P) (eval/trace) of " + row_tag(
             next(r for r in curve if r["update"] == chosen["update"]), state) \
-            if chosen["update"] != state["update"] or source != last else "last update"
+            if chosen["update"] != state["update"] or sources[0] != last else "last update"
     card = {
         "algo": cfg.algo.name,
         "command": commands[0],
@@ -614,6 +632,8 @@ def write_card(cfg: Any, source: Path, last: Path, out: Path) -> None:
     if snapshot:
         card |= {"run_continued_to": state["update"], "exported_with": _command(),
                  "exported_at_commit": _commit()}
+        if "averaged_updates" in chosen:
+            card["averaged_updates"] = chosen["averaged_updates"]
     lineage = init_lineage(recorded_init(run))
     if lineage:  # a fine-tune: what it started from, and the training behind it in all
         card |= {"init": lineage, "frames_with_init": _with_init(card, lineage, "frames"),

@@ -645,14 +645,33 @@ def test_snapshots_keep_every_evaluated_update(tiny_checkpoint, tmp_path):
     with pytest.raises(FileNotFoundError, match=r"updates \[2, 4\]"):
         train(compose_train(*TINY_TRAIN, f"resume={run / 'checkpoint.pt'}",
                             "total_updates=0", f"export={out}", "export_from=3"), run)
-    with pytest.raises(ValueError, match="export_from='newest'"):
-        train(compose_train(*TINY_TRAIN, "export_from=newest"), tmp_path / "bad")
+    # The average of the kept snapshots of a span: their mean weights, the last one's
+    # curve, and the updates averaged in the file and the card.
+    avg = tmp_path / "shipped" / "avg.pt"
+    train(compose_train(*TINY_TRAIN, f"resume={run / 'checkpoint.pt'}", "total_updates=0",
+                        f"export={avg}", "export_from=2-4"), run)
+    core, payload = load_core(avg)
+    cores = [load_core(s)[0].state_dict() for s in snaps]
+    for name, tensor in core.state_dict().items():
+        assert torch.equal(tensor, torch.stack([c[name] for c in cores]).mean(0))
+    assert not torch.equal(cores[0]["net.embed.weight"], cores[1]["net.embed.weight"])
+    card = json.loads(avg.with_suffix(".json").read_text())
+    assert card["averaged_updates"] == payload["averaged_updates"] == [2, 4]
+    assert card["selected_update"] == payload["update"] == 4
+    assert "uniform average" in card["selected_by"] and len(card["curve"]) == 4
+    for bad in ("newest", "4-2", "2-3-4", "-4"):
+        with pytest.raises(ValueError, match=f"export_from='{bad}'"):
+            train(compose_train(*TINY_TRAIN, f"export_from={bad}"), tmp_path / "bad")
+    with pytest.raises(FileNotFoundError, match=r"update_0001.pt; snapshots kept .*\[2, 4\]"):
+        train(compose_train(*TINY_TRAIN, f"resume={run / 'checkpoint.pt'}",
+                            "total_updates=0", f"export={avg}", "export_from=1-4"), run)
     # A snapshot this run will not keep is an error before training, not after it.
     for extra in ([], ["keep_snapshots=true", "eval_every=2", "total_updates=2"]):
-        with pytest.raises(ValueError, match="keeps no snapshot of update 3"):
-            train(compose_train(*TINY_TRAIN, f"export={out}", "export_from=3", *extra),
-                  tmp_path / "bad")
-        assert not (tmp_path / "bad" / "checkpoint.pt").exists()
+        for span in ("3", "2-3"):
+            with pytest.raises(ValueError, match=r"keeps no snapshot of update [23]\b"):
+                train(compose_train(*TINY_TRAIN, f"export={out}", f"export_from={span}",
+                                    *extra), tmp_path / "bad")
+            assert not (tmp_path / "bad" / "checkpoint.pt").exists()
     with pytest.warns(UserWarning, match="without export"):
         train(compose_train(*TINY_TRAIN, "total_updates=0", "export_from=last"),
               tmp_path / "noop")
