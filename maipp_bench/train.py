@@ -375,6 +375,11 @@ def init_lineage(init: str | None) -> dict[str, Any] | None:
                "frames": payload["frames"], "wall_s": payload["wall_s"],
                "command": commands[0], "resumed_with": commands[1:]}
     parent = init_lineage(recorded_init(payload))
+    card = path.with_suffix(".json")
+    if parent is not None and parent.get("found") is False and card.exists():
+        # A shipped file whose own init is gone (kept outside the repo): its card has the
+        # lineage, written when that init still existed.
+        parent = json.loads(card.read_text()).get("init", parent)
     return lineage | {"init": parent} if parent else lineage
 
 

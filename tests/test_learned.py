@@ -604,6 +604,19 @@ def test_a_fine_tunes_card_accounts_for_the_network_it_started_from(tiny_checkpo
     assert ft3["init"]["sha256"] == file_sha256(tmp_path / "ft.pt")
     assert ft3["init"]["init"]["sha256"] == file_sha256(tiny_checkpoint)
     assert ft3["frames_with_init"] == ft3["frames"] + ft["frames"] + base["frames"]
+    # The init of an exported network gone (as a shipped file's run folder is), its card
+    # still accounts for it.
+    gone = tmp_path / "gone.pt"
+    gone.write_bytes(tiny_checkpoint.read_bytes())
+    train(compose_train(*TINY_TRAIN, "total_updates=1", f"init={gone}",
+                        f"export={tmp_path / 'kept.pt'}"), tmp_path / "kept")
+    gone.unlink()
+    train(compose_train(*TINY_TRAIN, "total_updates=1", f"init={tmp_path / 'kept.pt'}",
+                        f"export={tmp_path / 'ft4.pt'}"), tmp_path / "ft4")
+    assert card("ft4")["init"]["init"] == card("kept")["init"]
+    assert card("ft4")["init"]["init"]["sha256"] == file_sha256(tiny_checkpoint)
+    assert card("ft4")["frames_with_init"] == card("ft4")["frames"] + ft["frames"] + base[
+        "frames"]
 
 
 def test_snapshots_keep_every_evaluated_update(tiny_checkpoint, tmp_path):
