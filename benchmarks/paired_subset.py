@@ -112,7 +112,13 @@ def paired(subset: Path, suite: str, method: str, results: Path, against: list[s
     ref = runs[f"{against[0]} (full)"]
     mine = next(iter(runs.values()))
     # Settings every run has (baselines may have been rerun at some budgets only).
-    for setting in sorted(set.intersection(*({k[0] for k in r} for r in runs.values()))):
+    settings = {name: {k[0] for k in r} for name, r in runs.items()}
+    common = sorted(set.intersection(*settings.values()))
+    if not common:
+        raise SystemExit("no setting has rows of every run; settings per run: "
+                         + "; ".join(f"{n}: {sorted(v)}" for n, v in settings.items())
+                         + " (pair with one --against method at a time)")
+    for setting in common:
         keys = [k for k in mine if k[0] == setting]
         print(f"{setting}: {len(keys)} episodes")
         for name, rows in runs.items():
