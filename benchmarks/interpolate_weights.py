@@ -16,6 +16,8 @@ from pathlib import Path
 
 import torch
 
+from maipp_bench.algos.checkpoint import average_policies
+
 
 def main() -> None:
     """Write the interpolated policy file."""
@@ -27,13 +29,8 @@ def main() -> None:
     args = p.parse_args()
     if not 0.0 <= args.alpha <= 1.0:
         p.error(f"--alpha {args.alpha}: must be in [0, 1]")
-    a = torch.load(args.a, weights_only=False)
-    b = torch.load(args.b, weights_only=False)
-    if {k: v.shape for k, v in a["core"].items()} != {k: v.shape for k, v in b["core"].items()}:
-        p.error(f"{args.a} and {args.b} hold different networks")
-    out = dict(a)
-    out["core"] = {k: args.alpha * a["core"][k] + (1 - args.alpha) * b["core"][k]
-                   for k in a["core"]}
+    mixed = average_policies([args.a, args.b], weights=[args.alpha, 1 - args.alpha])
+    out = torch.load(args.a, weights_only=False) | {"core": mixed["core"]}  # A's file
     args.out.parent.mkdir(parents=True, exist_ok=True)
     torch.save(out, args.out)
 

@@ -557,20 +557,26 @@ def check_snapshot_export(cfg: Any, start: int, last: Path) -> None:
     ``start``, the update it resumes from) or will keep (evaluated updates of this run
     with keep_snapshots)."""
     span = snapshot_span(cfg.export_from)
-    if span is None:
-        return
-    if span[1] <= start:
-        export_sources(cfg.export_from, last)  # FileNotFoundError listing the kept ones
-        return
-    if span[0] <= start:
-        export_sources(span[0], last)
-    for n in sorted({span[0], span[1]} - set(range(start + 1))):
-        if not (cfg.keep_snapshots and cfg.eval_every and n % cfg.eval_every == 0
-                and n <= cfg.total_updates):
+    for n in sorted(set(span or ())):
+        if n <= start:
+            kept_snapshot(cfg.export_from, n, last)  # FileNotFoundError listing the kept
+        elif not (cfg.keep_snapshots and cfg.eval_every and n % cfg.eval_every == 0
+                  and n <= cfg.total_updates):
             raise ValueError(f"export_from={cfg.export_from}: this run keeps no snapshot of "
                              f"update {n} (snapshots are kept with keep_snapshots=true at "
                              f"every eval_every={cfg.eval_every}th update up to "
                              f"total_updates={cfg.total_updates})")
+
+
+def kept_snapshot(export_from: Any, n: int, last: Path) -> Path:
+    """The kept snapshot of update ``n`` in the run of checkpoint ``last``; a
+    FileNotFoundError listing the kept ones if there is none."""
+    path = last.parent / "snapshots" / f"update_{n:04d}.pt"
+    if not path.exists():
+        kept = sorted(int(p.stem.split("_")[1]) for p in path.parent.glob("update_*.pt"))
+        raise FileNotFoundError(f"export_from={export_from}: no {path}; snapshots kept "
+                                f"(keep_snapshots=true) at updates {kept}")
+    return path
 
 
 def export_sources(export_from: Any, last: Path) -> list[Path]:
@@ -581,14 +587,9 @@ def export_sources(export_from: Any, last: Path) -> list[Path]:
     if span is None:
         best = last.parent / "best.pt"
         return [best if str(export_from) == "best" and best.exists() else last]
-    folder = last.parent / "snapshots"
-    kept = sorted(int(p.stem.split("_")[1]) for p in folder.glob("update_*.pt"))
-    for n in span:
-        if n not in kept:
-            raise FileNotFoundError(f"export_from={export_from}: no "
-                                    f"{folder / f'update_{n:04d}.pt'}; snapshots kept "
-                                    f"(keep_snapshots=true) at updates {kept}")
-    return [folder / f"update_{n:04d}.pt" for n in kept if span[0] <= n <= span[1]]
+    ends = [kept_snapshot(export_from, n, last) for n in span]
+    kept = {int(p.stem.split("_")[1]): p for p in ends[0].parent.glob("update_*.pt")}
+    return [kept[n] for n in sorted(kept) if span[0] <= n <= span[1]]
 
 
 def write_card(cfg: Any, sources: list[Path], last: Path, out: Path) -> None:

@@ -15,7 +15,7 @@ from tensordict import TensorDict
 
 from maipp_bench import algos
 from maipp_bench.algos.attention import AttentionConfig
-from maipp_bench.algos.checkpoint import load_core
+from maipp_bench.algos.checkpoint import average_policies, load_core
 from maipp_bench.algos.decisions import decision_batch
 from maipp_bench.algos.modules import AttentionCore, decision_actor
 from maipp_bench.envs import MAIPPConfig
@@ -617,6 +617,25 @@ def test_a_fine_tunes_card_accounts_for_the_network_it_started_from(tiny_checkpo
     assert card("ft4")["init"]["init"]["sha256"] == file_sha256(tiny_checkpoint)
     assert card("ft4")["frames_with_init"] == card("ft4")["frames"] + ft["frames"] + base[
         "frames"]
+
+
+def test_weighted_averages_mix_networks_and_refuse_different_ones(tiny_checkpoint,
+                                                                   tmp_path):
+    base = torch.load(tiny_checkpoint, weights_only=False)
+    other = base | {"core": {k: v + 1 if v.is_floating_point() else v
+                             for k, v in base["core"].items()}}
+    torch.save(other, tmp_path / "other.pt")
+    mixed = average_policies([tiny_checkpoint, tmp_path / "other.pt"], weights=[0.25, 0.75])
+    for k, v in base["core"].items():
+        if v.is_floating_point():
+            assert torch.allclose(mixed["core"][k], v + 0.75)
+    assert average_policies([tiny_checkpoint])["core"].keys() == base["core"].keys()
+    with pytest.raises(ValueError, match="2 networks"):
+        average_policies([tiny_checkpoint, tmp_path / "other.pt"], weights=[1.0])
+    wider = base | {"core": base["core"] | {"net.embed.bias": torch.zeros(3)}}
+    torch.save(wider, tmp_path / "wider.pt")
+    with pytest.raises(ValueError, match="different networks"):
+        average_policies([tiny_checkpoint, tmp_path / "wider.pt"])
 
 
 def test_snapshots_keep_every_evaluated_update(tiny_checkpoint, tmp_path):

@@ -79,12 +79,13 @@ def slim(state: dict[str, Any], *extra: str) -> dict[str, Any]:
         k: state[k] for k in OPTIONAL_KEYS if k in state}
 
 
-def average_policies(paths: list[Path]) -> dict[str, Any]:
+def average_policies(paths: list[Path], weights: list[float] | None = None
+                     ) -> dict[str, Any]:
     """The payload of one checkpoint or policy file; of several (snapshots of one run),
     the last one's with its network weights replaced by the uniform average of all of
-    theirs (``averaged_updates``: the updates averaged). A plain average of weights along
-    one run smooths the update-to-update wander of its policy; networks of different
-    shape or inputs are a ValueError."""
+    theirs, or their sum with ``weights`` (``averaged_updates``: the updates averaged). A
+    plain average of weights along one run smooths the update-to-update wander of its
+    policy; networks of different shape or inputs are a ValueError."""
     payloads = [torch.load(p, map_location="cpu", weights_only=False) for p in paths]
     if len(payloads) == 1:
         return payloads[0]
@@ -97,8 +98,17 @@ def average_policies(paths: list[Path]) -> dict[str, Any]:
     for path, payload in zip(paths[1:], payloads[1:], strict=True):
         if network(payload) != network(first):
             raise ValueError(f"cannot average {paths[0]} and {path}: different networks")
-    core = {k: torch.stack([p["core"][k] for p in payloads]).mean(0)
-            if v.is_floating_point() else v for k, v in payloads[-1]["core"].items()}
+    if weights is not None and len(weights) != len(payloads):
+        raise ValueError(f"{len(weights)} weights for {len(payloads)} networks")
+
+    def mix(key: str) -> torch.Tensor:
+        tensors = [p["core"][key] for p in payloads]
+        if weights is None:
+            return torch.stack(tensors).mean(0)
+        return sum(w * t for w, t in zip(weights, tensors, strict=True))
+
+    core = {k: mix(k) if v.is_floating_point() else v
+            for k, v in payloads[-1]["core"].items()}
     return payloads[-1] | {"core": core, "averaged_updates": [p["update"] for p in payloads]}
 
 
