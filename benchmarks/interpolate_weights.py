@@ -5,7 +5,7 @@ fine-tune (A) and the network it started from (B). The output keeps A's file oth
 (configs, curve, commands), so it loads wherever A does.
 
 Usage:
-    python benchmarks/interpolate_weights.py maipp_bench/checkpoints/ours.pt \\
+    python benchmarks/interpolate_weights.py maipp_bench/checkpoints/ours_v4.pt \\
         maipp_bench/checkpoints/ours_v3.pt --alpha 0.5 --out outputs/avg/avg50.pt
 """
 
