@@ -10,6 +10,8 @@ Usage:
     python benchmarks/board_diff.py --suite risk_aware --method ours_ti \\
         --against sga_rrt_0.3_0.4 greedy catnipp_ti catnipp_greedy oracle
     python benchmarks/board_diff.py --suite comm --method ours_ti --against oracle
+    python benchmarks/board_diff.py --suite risk_aware --method ours_ti --against catnipp_ti \\
+        --method-from outputs/cand_boards   # a candidate's rows, run apart from the board
 """
 
 from __future__ import annotations
@@ -47,8 +49,17 @@ def main() -> None:
     p.add_argument("--method", required=True)
     p.add_argument("--against", nargs="+", required=True)
     p.add_argument("--leaderboards", default="leaderboards")
+    p.add_argument("--method-from", metavar="DIR",
+                   help="read --method's rows from the board in DIR instead (e.g. a "
+                        "candidate's, run with eval --leaderboards DIR --fresh-board)")
     args = p.parse_args()
     board = json.loads((Path(args.leaderboards) / f"{args.suite}.json").read_text())
+    if args.method_from:
+        other = json.loads((Path(args.method_from) / f"{args.suite}.json").read_text())
+        theirs = [r for r in other["rows"] if r["method"] == args.method]
+        if not theirs:
+            raise SystemExit(f"{args.method} has no row on {args.method_from}/{args.suite}.json")
+        board["rows"] = [r for r in board["rows"] if r["method"] != args.method] + theirs
     for entry in differences(board, args.method, args.against):
         cells = "  ".join(f"{m} {d:+.1f} ± {se:.1f}" for m, (d, se) in entry["diff"].items())
         print(f"{entry['setting']:>28}  {args.method} {entry['mean']:.1f}  minus: {cells}")
