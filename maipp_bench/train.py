@@ -91,7 +91,9 @@ class TrainConfig:
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     seed: int = 0
     device: str = "cpu"
-    threads: int = 1  # torch threads (1 is fastest for this batched work on CPU)
+    # torch threads: 1 per run when runs share the cores (the most work per core); one
+    # run alone on the 2-core box updates 1.6x faster with 2 (docs/performance.md)
+    threads: int = 1
     n_envs: int = 8  # envs stepped together
     steps_per_batch: int = 160  # env steps per env per update (> one episode at B = 5)
     total_updates: int = 200
