@@ -63,11 +63,14 @@ def eval_title(sources: dict[str, list[dict[str, Any]]]) -> str:
     return "Tr(P_f), held-out " + (" / ".join(sorted(tags)) or "greedy") + " eval"
 
 
-def plot_curves(sources: dict[str, list[dict[str, Any]]], out: str | Path,
-                selected: dict[str, int] | None = None) -> Path:
-    """One figure, three panels, one line per named curve, a dashed line at each curve's
-    ``selected`` frames; written to ``out`` (PNG)."""
+def figure(sources: dict[str, list[dict[str, Any]]],
+           selected: dict[str, int] | None = None) -> plt.Figure:
+    """Three panels, one line per named curve in the same colour in every panel (a curve
+    may have no points in one, e.g. a run without held-out evaluations), a dashed line at
+    each curve's ``selected`` frames."""
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.6), constrained_layout=True)
+    cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    colors = {name: cycle[i % len(cycle)] for i, name in enumerate(sources)}
     panels = [("trace_final", "Tr(P_f), training episodes"),
               ("eval/trace", eval_title(sources)),
               ("reward_per_decision", "reward per decision")]
@@ -75,16 +78,24 @@ def plot_curves(sources: dict[str, list[dict[str, Any]]], out: str | Path,
         for name, rows in sources.items():
             pts = [(r["frames"], r[key]) for r in rows if key in r and r[key] == r[key]]
             if pts:
-                line, = ax.plot(*zip(*pts), marker="." if len(pts) < 40 else None, label=name)
-                if selected and name in selected:
-                    ax.axvline(selected[name], color=line.get_color(), ls="--", lw=1,
-                               label=f"{name}: selected update")
+                ax.plot(*zip(*pts), marker="." if len(pts) < 40 else None, label=name,
+                        color=colors[name])
+            if selected and name in selected:
+                ax.axvline(selected[name], color=colors[name], ls="--", lw=1,
+                           label=f"{name}: selected update")
         ax.set_title(title)
         ax.set_xlabel("env frames")
         # Thousands as "20k": full numbers run into each other on narrow panels.
         ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x / 1000:g}k" if x else "0"))
         ax.grid(alpha=0.3)
     axes[0].legend()
+    return fig
+
+
+def plot_curves(sources: dict[str, list[dict[str, Any]]], out: str | Path,
+                selected: dict[str, int] | None = None) -> Path:
+    """:func:`figure`, written to ``out`` (PNG)."""
+    fig = figure(sources, selected)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=110)

@@ -299,6 +299,23 @@ def test_a_fine_tunes_curve_continues_from_its_starting_networks_frames(tmp_path
     assert selected_frames(card) == 5200
 
 
+def test_a_curve_keeps_its_colour_in_every_panel():
+    from maipp_bench.curves import figure
+
+    # "a" has no held-out evaluations: "b" must not take its colour in that panel.
+    a = [{"update": u, "frames": u, "trace_final": 1.0, "reward_per_decision": 0.1}
+         for u in (1, 2)]
+    b = [r | {"eval/trace": 2.0} for r in a]
+    fig = figure({"a": a, "b": b}, selected={"a": 2, "b": 2})
+    colors = [{line.get_label(): line.get_color() for line in ax.get_lines()}
+              for ax in fig.axes]
+    assert "a" not in colors[1]
+    assert colors[0]["a"] != colors[0]["b"]
+    for panel in colors:
+        assert panel["b"] == colors[0]["b"]
+        assert panel["a: selected update"] == colors[0]["a"]  # drawn where "a" has no points
+
+
 def test_eval_panel_title_names_the_evaluations():
     from maipp_bench.curves import eval_title
 
