@@ -9,8 +9,9 @@ updates after one warm-up update:
   rows per second through forward + backward.
 
 ``--card CARD.json`` instead reports the throughput of a finished run from its checkpoint
-card (the wall time of every update is in its curve); ``--split U`` also reports updates
-1..U and U+1.. apart (e.g. a run resumed with other code at update U).
+card (the wall time of every update is in its curve), or from a run's ``curve.jsonl``;
+``--split U`` also reports updates 1..U and U+1.. apart (e.g. a run resumed with other
+code at update U).
 
 Usage (Hydra overrides as for training):
     python benchmarks/train_throughput.py algo=ours --updates 3
@@ -33,6 +34,7 @@ from omegaconf import OmegaConf
 import maipp_bench.train as train_mod
 from maipp_bench.algos.ppo import build_learner
 from maipp_bench.allocator import keep_freed_memory
+from maipp_bench.curves import read_curve
 from maipp_bench.envs.config import MAIPPConfig
 
 
@@ -57,7 +59,9 @@ def main() -> None:
                    help="with --card: also report the updates between these update numbers")
     args = p.parse_args()
     if args.card:
-        curve = json.load(open(args.card))["curve"]
+        # a card's curve, or a run folder's curve.jsonl (a run not exported as a card)
+        curve = (read_curve(args.card) if args.card.endswith(".jsonl")
+                 else json.load(open(args.card))["curve"])
         cuts = [0, *args.split, len(curve)] if args.split else [0, len(curve)]
         report = [card_segment(curve, a, b) for a, b in zip(cuts, cuts[1:])]
         if args.split:

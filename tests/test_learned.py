@@ -300,6 +300,8 @@ def test_a_fine_tunes_curve_continues_from_its_starting_networks_frames(tmp_path
 
 
 def test_a_curve_keeps_its_colour_in_every_panel():
+    import matplotlib.pyplot as plt
+
     from maipp_bench.curves import figure
 
     # "a" has no held-out evaluations: "b" must not take its colour in that panel.
@@ -309,6 +311,7 @@ def test_a_curve_keeps_its_colour_in_every_panel():
     fig = figure({"a": a, "b": b}, selected={"a": 2, "b": 2})
     colors = [{line.get_label(): line.get_color() for line in ax.get_lines()}
               for ax in fig.axes]
+    plt.close(fig)  # pyplot's figure list stays empty for other tests (test_viz)
     assert "a" not in colors[1]
     assert colors[0]["a"] != colors[0]["b"]
     for panel in colors:
