@@ -9,9 +9,9 @@ updates after one warm-up update:
   rows per second through forward + backward.
 
 ``--card CARD.json`` instead reports the throughput of a finished run from its checkpoint
-card (the wall time of every update is in its curve), or from a run's ``curve.jsonl``;
-``--split U`` also reports updates 1..U and U+1.. apart (e.g. a run resumed with other
-code at update U).
+card (the wall time of every update is in its curve), or from a run folder or its
+``curve.jsonl``; ``--split U`` also reports updates 1..U and U+1.. apart (e.g. a run
+resumed with other code at update U).
 
 Usage (Hydra overrides as for training):
     python benchmarks/train_throughput.py algo=ours --updates 3
@@ -26,6 +26,7 @@ import json
 import os
 import platform
 import time
+from pathlib import Path
 
 import torch
 from hydra import compose, initialize_config_module
@@ -59,9 +60,10 @@ def main() -> None:
                    help="with --card: also report the updates between these update numbers")
     args = p.parse_args()
     if args.card:
-        # a card's curve, or a run folder's curve.jsonl (a run not exported as a card)
-        curve = (read_curve(args.card) if args.card.endswith(".jsonl")
-                 else json.load(open(args.card))["curve"])
+        # A card's own curve (read_curve would shift a fine-tune's frames by its init's,
+        # which card_segment must not count), else a run folder or its curve.jsonl.
+        curve = (json.loads(Path(args.card).read_text())["curve"]
+                 if args.card.endswith(".json") else read_curve(args.card))
         cuts = [0, *args.split, len(curve)] if args.split else [0, len(curve)]
         report = [card_segment(curve, a, b) for a, b in zip(cuts, cuts[1:])]
         if args.split:
