@@ -31,7 +31,7 @@ echo "stage2 done $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
 
 $TRAIN init="$OUT/stage2/checkpoint.pt" seed="$((SEED + 2))" algo.lr=1e-4 \
     algo.intent_rollouts=8 algo.intent_depth=5 n_envs=16 algo.epochs=4 algo.target_kl=0.02 \
-    max_minutes="$M3" eval_every=5 eval_episodes=4 keep_snapshots=true \
+    max_minutes="$M3" eval_every=0 keep_snapshots=true snapshot_every=5 \
     hydra.run.dir="$OUT/stage3"
 LAST=$(ls "$OUT/stage3/snapshots" | sed -n 's/update_0*\([0-9]*\)\.pt/\1/p' | sort -n | tail -1)
 python -m maipp_bench.train algo=ours resume="$OUT/stage3/checkpoint.pt" total_updates=0 \

@@ -111,8 +111,12 @@ class TrainConfig:
     # Keep the weights of every evaluated update in <run>/snapshots/update_<N>.pt (slim
     # policy files): best.pt is chosen by the held-out score, which may not rank candidates
     # as the leaderboard's method would; snapshots let them be compared afterwards
-    # (benchmarks/paired_subset.py --heldout <run>/snapshots/*.pt --heldout-method ours_ti).
+    # (benchmarks/paired_subset.py --heldout <run>/snapshots/*.pt --heldout-method ours_ti)
+    # or averaged (export_from=N-M).
     keep_snapshots: bool = False
+    # Keep them every this many updates instead (0: at each held-out evaluation): a run
+    # that averages its snapshots needs no evaluation to choose them (eval_every=0).
+    snapshot_every: int = 0
     resume: str | None = None
     # Start from this network's weights (a checkpoint or an exported policy, e.g. "ours"):
     # fine-tuning, with a fresh optimizer and update count. Ignored when resuming.
@@ -412,7 +416,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
         raise ValueError("env.node_encoding_dim must be >= 1: the network reads the "
                          "roadmap's Laplacian encoding (paper: 32)")
     spec, _ = eval_spec(cfg)  # a bad eval_method / eval_budgets fails now, not later
-    snapshot_span(cfg.export_from)  # a bad value fails now, not after training
+    check_snapshots(cfg)  # bad values fail now, not after training
     if not cfg.export and (cfg.export_from != "best" or cfg.export_note):
         warnings.warn("export_from / export_note do nothing without export=<path>",
                       stacklevel=2)
@@ -510,7 +514,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
             learner.core.eval()
             row.update(evaluate(learner, env_cfg, cfg))
         curve.append(row)
-        if cfg.keep_snapshots and "eval/trace" in row:
+        if cfg.keep_snapshots and (update + 1) % snapshot_period(cfg) == 0:
             save(update + 1, run_dir / "snapshots" / f"update_{update + 1:04d}.pt",
                  policy_only=True)
         if row.get("eval/trace", math.inf) < best:
@@ -539,6 +543,24 @@ def train(cfg: Any, run_dir: Path) -> Path:
     return ckpt_path
 
 
+def check_snapshots(cfg: Any) -> None:
+    """A clear error for snapshot settings that are invalid or would keep nothing."""
+    snapshot_span(cfg.export_from)
+    if cfg.snapshot_every < 0:
+        raise ValueError(f"snapshot_every={cfg.snapshot_every}: must be >= 0 (0: at each "
+                         f"held-out evaluation, eval_every)")
+    if cfg.keep_snapshots and not snapshot_period(cfg):
+        raise ValueError("keep_snapshots=true keeps nothing with eval_every=0 and "
+                         "snapshot_every=0: set snapshot_every=N (every N updates) or "
+                         "eval_every=N (at each held-out evaluation)")
+
+
+def snapshot_period(cfg: Any) -> int:
+    """Every how many updates keep_snapshots keeps one: snapshot_every, else at each
+    held-out evaluation (eval_every); 0: never."""
+    return cfg.snapshot_every or cfg.eval_every
+
+
 def snapshot_span(export_from: Any) -> tuple[int, int] | None:
     """The updates ``(first, last)`` of the snapshots ``export_from`` names: ``N`` one
     snapshot, ``N-M`` the average of those kept from update N to M (None for best / last);
@@ -556,17 +578,18 @@ def snapshot_span(export_from: Any) -> tuple[int, int] | None:
 
 def check_snapshot_export(cfg: Any, start: int, last: Path) -> None:
     """``export_from=N`` (or ``N-M``) must name snapshots the run has kept (up to
-    ``start``, the update it resumes from) or will keep (evaluated updates of this run
-    with keep_snapshots)."""
+    ``start``, the update it resumes from) or will keep (with keep_snapshots, every
+    snapshot_period-th update of this run)."""
     span = snapshot_span(cfg.export_from)
     for n in sorted(set(span or ())):
         if n <= start:
             kept_snapshot(cfg.export_from, n, last)  # FileNotFoundError listing the kept
-        elif not (cfg.keep_snapshots and cfg.eval_every and n % cfg.eval_every == 0
-                  and n <= cfg.total_updates):
+        elif not (cfg.keep_snapshots and snapshot_period(cfg)
+                  and n % snapshot_period(cfg) == 0 and n <= cfg.total_updates):
             raise ValueError(f"export_from={cfg.export_from}: this run keeps no snapshot of "
                              f"update {n} (snapshots are kept with keep_snapshots=true at "
-                             f"every eval_every={cfg.eval_every}th update up to "
+                             f"every snapshot_every (else eval_every)th update: here "
+                             f"{snapshot_period(cfg) or 'never'}, up to "
                              f"total_updates={cfg.total_updates})")
 
 

@@ -727,3 +727,30 @@ def test_snapshots_keep_every_evaluated_update(tiny_checkpoint, tmp_path):
     with pytest.warns(UserWarning, match="without export"):
         train(compose_train(*TINY_TRAIN, "total_updates=0", "export_from=last"),
               tmp_path / "noop")
+
+
+def test_snapshots_every_n_updates_need_no_evaluation(tmp_path):
+    """snapshot_every keeps snapshots without held-out evaluations (eval_every=0), and the
+    same weights as a run that evaluates: evaluation never touches training's randomness."""
+    from maipp_bench.train import train
+
+    quiet, evaluated = tmp_path / "quiet", tmp_path / "evaluated"
+    train(compose_train(*TINY_TRAIN, "total_updates=4", "keep_snapshots=true",
+                        "snapshot_every=2"), quiet)
+    train(compose_train(*TINY_TRAIN, "total_updates=4", "keep_snapshots=true",
+                        "eval_every=2", "eval_episodes=2"), evaluated)
+    names = [p.name for p in sorted((quiet / "snapshots").glob("*.pt"))]
+    assert names == ["update_0002.pt", "update_0004.pt"] and not (quiet / "best.pt").exists()
+    for name in names:
+        a, b = (load_core(run / "snapshots" / name)[0].state_dict() for run in (quiet, evaluated))
+        assert all(torch.equal(t, b[n]) for n, t in a.items())
+    # An export of a span that snapshot_every will keep is accepted before training.
+    out = tmp_path / "avg.pt"
+    train(compose_train(*TINY_TRAIN, "total_updates=2", "keep_snapshots=true",
+                        "snapshot_every=1", f"export={out}", "export_from=1-2"), tmp_path / "s1")
+    assert load_core(out)[1]["averaged_updates"] == [1, 2]
+    for bad, match in ((["keep_snapshots=true"], "keeps nothing with eval_every=0"),
+                       (["snapshot_every=-1"], "snapshot_every=-1: must be >= 0")):
+        with pytest.raises(ValueError, match=match):
+            train(compose_train(*TINY_TRAIN, *bad), tmp_path / "bad")
+        assert not (tmp_path / "bad" / "checkpoint.pt").exists()
