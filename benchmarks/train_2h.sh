@@ -7,8 +7,8 @@
 #   stage 3  a fine-tune of stage 2's last update with the paper's TI(8, 5) intents in
 #            collection, snapshots kept every 5 updates; the policy file is the uniform
 #            average of all of them (export_from=5-<last>).
-# Stage limits are minutes of update time (train's max_minutes); held-out evaluations,
-# saves and start-up come on top, so the three limits sum to less than 120.
+# Stage limits are minutes of update time (train's max_minutes); no stage evaluates on
+# held-out episodes; saves and start-up come on top, so the limits sum to less than 120.
 # Usage: bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3]
 set -euo pipefail
 OUT=${1:?usage: train_2h.sh OUT_DIR [SEED] [M1 M2 M3]}
