@@ -16,6 +16,11 @@ SEED=${2:-0}
 M1=${3:-38}
 M2=${4:-37}
 M3=${5:-36}
+for m in "$M1" "$M2" "$M3"; do  # minutes may be fractional (a short smoke run)
+    [[ $m =~ ^[0-9]+([.][0-9]+)?$ ]] && [[ ! $m =~ ^0+([.]0+)?$ ]] \
+        || { echo "train_2h.sh: stage minutes must be positive numbers, got '$m'" >&2; exit 2; }
+done
+M12=$(python -c "print($M1 + $M2)")  # stage 2 resumes: its limit counts stage 1's minutes
 TRAIN="python -m maipp_bench.train algo=ours threads=2 progress=false total_updates=100000"
 mkdir -p "$OUT"
 echo "start $(date -u +%FT%TZ)" | tee "$OUT/wall.txt"
@@ -26,7 +31,7 @@ echo "stage1 done $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
 
 mkdir -p "$OUT/stage2" && cp "$OUT/stage1/checkpoint.pt" "$OUT/stage2/checkpoint.pt"
 $TRAIN resume="$OUT/stage2/checkpoint.pt" algo.intent_rollouts=4 algo.intent_depth=5 \
-    n_envs=16 algo.epochs=4 algo.target_kl=0.02 max_minutes="$((M1 + M2))" eval_every=0
+    n_envs=16 algo.epochs=4 algo.target_kl=0.02 max_minutes="$M12" eval_every=0
 echo "stage2 done $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
 
 $TRAIN init="$OUT/stage2/checkpoint.pt" seed="$((SEED + 2))" algo.lr=1e-4 \
