@@ -6,6 +6,7 @@ import json
 import subprocess
 import sys
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -264,6 +265,19 @@ def test_bad_overrides_get_clear_errors(override, message, tmp_path):
          f"hydra.run.dir={tmp_path}"], capture_output=True, text=True, timeout=300)
     assert proc.returncode != 0
     assert message in proc.stderr
+
+
+@pytest.mark.parametrize("minutes", [["1", "-2", "3"], ["0", "2", "3"], ["1", "2", "abc"]])
+def test_two_hour_script_rejects_bad_minutes_before_training(minutes, tmp_path):
+    """benchmarks/train_2h.sh checks its stage minutes first: a bad one used to reach
+    bash arithmetic, which skipped a stage with only a printed error."""
+    script = Path(__file__).parents[1] / "benchmarks" / "train_2h.sh"
+    out = tmp_path / "run"
+    proc = subprocess.run(["bash", str(script), str(out), "0", *minutes], capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 2
+    assert "stage minutes must be positive numbers" in proc.stderr
+    assert not out.exists()
 
 
 def test_training_curve_plot(tiny_checkpoint, tmp_path):
