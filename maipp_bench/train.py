@@ -114,8 +114,9 @@ class TrainConfig:
     # (benchmarks/paired_subset.py --heldout <run>/snapshots/*.pt --heldout-method ours_ti)
     # or averaged (export_from=N-M).
     keep_snapshots: bool = False
-    # Keep them every this many updates instead (0: at each held-out evaluation): a run
-    # that averages its snapshots needs no evaluation to choose them (eval_every=0).
+    # Keep them every this many updates instead (implies keep_snapshots; 0: at each
+    # held-out evaluation): a run that averages its snapshots needs no evaluation to choose
+    # them (eval_every=0).
     snapshot_every: int = 0
     resume: str | None = None
     # Start from this network's weights (a checkpoint or an exported policy, e.g. "ours"):
@@ -484,6 +485,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
         }
         atomic_save(slim(state) if policy_only else state, path)
 
+    period = snapshot_period(cfg)  # 0: no snapshots
     for update in range(start, cfg.total_updates):
         t0 = time.perf_counter()
         # --- collect: every env starts fresh episodes from a seed of (seed, update)
@@ -514,7 +516,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
             learner.core.eval()
             row.update(evaluate(learner, env_cfg, cfg))
         curve.append(row)
-        if cfg.keep_snapshots and (update + 1) % snapshot_period(cfg) == 0:
+        if period and (update + 1) % period == 0:
             save(update + 1, run_dir / "snapshots" / f"update_{update + 1:04d}.pt",
                  policy_only=True)
         if row.get("eval/trace", math.inf) < best:
@@ -556,9 +558,9 @@ def check_snapshots(cfg: Any) -> None:
 
 
 def snapshot_period(cfg: Any) -> int:
-    """Every how many updates keep_snapshots keeps one: snapshot_every, else at each
-    held-out evaluation (eval_every); 0: never."""
-    return cfg.snapshot_every or cfg.eval_every
+    """Every how many updates a snapshot is kept: snapshot_every, else (keep_snapshots)
+    at each held-out evaluation (eval_every); 0: never."""
+    return cfg.snapshot_every or (cfg.eval_every if cfg.keep_snapshots else 0)
 
 
 def snapshot_span(export_from: Any) -> tuple[int, int] | None:
@@ -578,18 +580,17 @@ def snapshot_span(export_from: Any) -> tuple[int, int] | None:
 
 def check_snapshot_export(cfg: Any, start: int, last: Path) -> None:
     """``export_from=N`` (or ``N-M``) must name snapshots the run has kept (up to
-    ``start``, the update it resumes from) or will keep (with keep_snapshots, every
-    snapshot_period-th update of this run)."""
-    span = snapshot_span(cfg.export_from)
+    ``start``, the update it resumes from) or will keep (every snapshot_period-th update
+    of this run)."""
+    span, period = snapshot_span(cfg.export_from), snapshot_period(cfg)
     for n in sorted(set(span or ())):
         if n <= start:
             kept_snapshot(cfg.export_from, n, last)  # FileNotFoundError listing the kept
-        elif not (cfg.keep_snapshots and snapshot_period(cfg)
-                  and n % snapshot_period(cfg) == 0 and n <= cfg.total_updates):
+        elif not (period and n % period == 0 and n <= cfg.total_updates):
             raise ValueError(f"export_from={cfg.export_from}: this run keeps no snapshot of "
-                             f"update {n} (snapshots are kept with keep_snapshots=true at "
-                             f"every snapshot_every (else eval_every)th update: here "
-                             f"{snapshot_period(cfg) or 'never'}, up to "
+                             f"update {n} (snapshots are kept at every snapshot_every-th "
+                             f"update, or with keep_snapshots=true every eval_every-th: here "
+                             f"{period or 'never'}, up to "
                              f"total_updates={cfg.total_updates})")
 
 

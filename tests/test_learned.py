@@ -758,10 +758,11 @@ def test_snapshots_every_n_updates_need_no_evaluation(tmp_path):
     for name in names:
         a, b = (load_core(run / "snapshots" / name)[0].state_dict() for run in (quiet, evaluated))
         assert all(torch.equal(t, b[n]) for n, t in a.items())
-    # An export of a span that snapshot_every will keep is accepted before training.
+    # An export of a span that snapshot_every will keep is accepted before training
+    # (snapshot_every alone keeps them: it implies keep_snapshots).
     out = tmp_path / "avg.pt"
-    train(compose_train(*TINY_TRAIN, "total_updates=2", "keep_snapshots=true",
-                        "snapshot_every=1", f"export={out}", "export_from=1-2"), tmp_path / "s1")
+    train(compose_train(*TINY_TRAIN, "total_updates=2", "snapshot_every=1", f"export={out}",
+                        "export_from=1-2"), tmp_path / "s1")
     assert load_core(out)[1]["averaged_updates"] == [1, 2]
     for bad, match in ((["keep_snapshots=true"], "keeps nothing with eval_every=0"),
                        (["snapshot_every=-1"], "snapshot_every=-1: must be >= 0")):
