@@ -78,6 +78,8 @@ def main() -> None:
     env_cfg = MAIPPConfig.from_dict(OmegaConf.to_container(cfg.env))
     learner = build_learner(cfg.algo, env_cfg.node_encoding_dim, env_cfg.interest_threshold,
                             cfg.device)
+    if cfg.init:  # a fine-tune's throughput: a trained policy samples (and repeats) differently
+        train_mod.init_weights(learner, cfg.init, cfg.algo, env_cfg.interest_threshold)
     optim = torch.optim.Adam(learner.parameters(), lr=cfg.algo.lr)
     _, collector, buffer = train_mod.make_collection(cfg, env_cfg, learner)
     times = {"collect": 0.0, "decisions": 0.0, "learn": 0.0}

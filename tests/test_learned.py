@@ -179,6 +179,47 @@ def test_ti_broadcasts_intents_unless_told_not_to(tiny_checkpoint, intents):
     assert bool(env.episode.intent_valid.any()) == intents
 
 
+def test_distinct_rows_finds_one_row_per_value():
+    from maipp_bench.algos.rollouts import distinct_rows
+
+    key = torch.tensor([[0, 2], [1, 2], [0, 2], [0, 1], [1, 2]])
+    keep, back = distinct_rows(key)
+    assert torch.equal(key[keep][back], key)
+    assert len(keep) == 3 and sorted(keep.tolist()) == [0, 1, 3]  # first of each value
+    keep, back = distinct_rows(torch.zeros(0, 2, dtype=torch.long))
+    assert keep.numel() == 0 and back.numel() == 0
+
+
+def test_ti_runs_the_network_once_per_distinct_path_with_the_same_bits(tiny_checkpoint,
+                                                                         monkeypatch):
+    """16 rollouts over at most 4 slots must repeat paths: the network then runs on fewer
+    rows, and every action and broadcast intent is bit-identical to running it on all."""
+    from maipp_bench.algos import rollouts as ro
+    from maipp_bench.envs import MAIPPEnv
+
+    def play():
+        env = MAIPPEnv(MAIPPConfig(n_agents=2, budget=1.5, n_nodes=30, k_neighbors=4),
+                       batch_size=[3])
+        policy = algos.POLICIES["attention"](env, torch.tensor([3, 4, 5]), mode="ti",
+                                             rollouts=16, depth=3,
+                                             checkpoint=str(tiny_checkpoint))
+        rows, real = [], policy.core.forward
+        monkeypatch.setattr(policy.core, "forward", lambda *a: rows.append(
+            a[0].shape[0]) or real(*a))
+        td, out = env.reset(), []
+        while not bool(td.get("done").all()):
+            td = policy(td)
+            out.append(td.select(("agents", "action"), ("agents", "intent")).clone())
+            td = env.step(td)["next"]
+        return torch.stack(out), sum(rows)
+
+    distinct, rows_distinct = play()
+    monkeypatch.setattr(ro, "distinct_rows", lambda key: (torch.arange(key.shape[0]),) * 2)
+    every, rows_every = play()
+    assert (distinct == every).all()
+    assert rows_distinct < 0.7 * rows_every
+
+
 def test_ti_safety_layer_picks_the_best_safe_rollout():
     from maipp_bench.algos.rollouts import Rollouts
 

@@ -74,6 +74,17 @@ class Rollouts:
         return fit_intent(self.nodes, self.valid, cov_floor)
 
 
+def distinct_rows(key: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """For integer rows ``key [R, c]``: the index of one row per distinct value ``[U]`` and,
+    for every row, the position of its value among them ``[R]`` (so ``key[keep][back]``
+    equals ``key``)."""
+    _, back = torch.unique(key, dim=0, return_inverse=True)
+    r = torch.arange(key.shape[0], device=key.device)
+    keep = torch.full((int(back.max()) + 1 if r.numel() else 0,), key.shape[0],
+                      dtype=torch.long, device=key.device)
+    return keep.scatter_reduce(0, back, r, "amin"), back
+
+
 def fantasy_rollouts(core: AttentionCore, env: MAIPPEnv, rows: TensorDictBase,
                      logits: torch.Tensor, hidden: torch.Tensor, e_idx: torch.Tensor,
                      a_idx: torch.Tensor, gumbel: torch.Tensor) -> Rollouts:
@@ -114,6 +125,8 @@ def fantasy_rollouts(core: AttentionCore, env: MAIPPEnv, rows: TensorDictBase,
     alive = torch.ones(b * a, dtype=torch.bool, device=env.device)
     step_logits = rep(logits)
     first = None
+    owner = torch.arange(b, device=env.device).repeat_interleave(a).unsqueeze(-1)
+    path: list[torch.Tensor] = []  # the slots each rollout sampled so far
     visited, visited_ok = [], []
     for step in range(j):
         if step > 0:  # the policy's input after the fantasy measurements so far
@@ -132,8 +145,14 @@ def fantasy_rollouts(core: AttentionCore, env: MAIPPEnv, rows: TensorDictBase,
             alive &= ok.any(-1)
             mask = ok | ~alive.unsqueeze(-1)
             budget = (left / pool).clamp(0, 1).unsqueeze(-1)
-            step_logits, _, h = core(feats, enc, cur, budget, nbr, mask, h)
+            # Rollouts of one agent that sampled the same moves so far hold the same state,
+            # so the network runs once per distinct path (a peaked policy repeats itself).
+            keep, back = distinct_rows(torch.cat([owner, torch.stack(path, 1)], 1))
+            step_logits, _, h = core(feats[keep], enc[keep], cur[keep], budget[keep],
+                                     nbr[keep], mask[keep], h[keep])
+            step_logits, h = step_logits[back], h[back]
         choice = (step_logits + gumbel[:, step]).argmax(-1)
+        path.append(choice)
         if first is None:
             first = choice
         nxt = nbr.gather(1, choice.unsqueeze(-1)).squeeze(-1)
