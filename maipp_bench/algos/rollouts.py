@@ -78,10 +78,9 @@ def distinct_rows(key: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """For integer rows ``key [R, c]``: the index of one row per distinct value ``[U]`` and,
     for every row, the position of its value among them ``[R]`` (so ``key[keep][back]``
     equals ``key``)."""
-    _, back = torch.unique(key, dim=0, return_inverse=True)
+    values, back = torch.unique(key, dim=0, return_inverse=True)
     r = torch.arange(key.shape[0], device=key.device)
-    keep = torch.full((int(back.max()) + 1 if r.numel() else 0,), key.shape[0],
-                      dtype=torch.long, device=key.device)
+    keep = torch.full((values.shape[0],), key.shape[0], dtype=torch.long, device=key.device)
     return keep.scatter_reduce(0, back, r, "amin"), back
 
 
