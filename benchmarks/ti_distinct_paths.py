@@ -4,8 +4,10 @@ Rollouts of one deciding agent that sampled the same moves so far hold the same 
 (belief, node, budget, LSTM), so :func:`~maipp_bench.algos.rollouts.fantasy_rollouts`
 runs the network on one row per distinct path and copies its output to the others. This
 script plays the same protocol episodes (the suite's first ``--instances`` instances, its
-first trial) with a learned TI method both ways, interleaved, and reports the planning
-seconds, the rows the network ran on, and whether every episode's Tr(P_f) is identical.
+first trial) with a learned TI method both ways, one after the other, and reports the planning
+seconds, the rows the network ran on, and whether every episode's Tr(P_f) is identical,
+both ways and to the committed board's spot check of that row (the same episodes when
+``--instances`` is the suite's 30).
 
 Usage:
     OMP_NUM_THREADS=1 python benchmarks/ti_distinct_paths.py --suite risk_aware \
@@ -15,8 +17,10 @@ Usage:
 from __future__ import annotations
 
 import argparse
+import json
 import platform
 import time
+from pathlib import Path
 from unittest import mock
 
 import torch
@@ -28,11 +32,7 @@ from maipp_bench.allocator import keep_freed_memory
 from maipp_bench.protocol.protocol import load_protocol
 from maipp_bench.protocol.runner import run_chunk
 
-
-def every_row(key: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``distinct_rows`` that keeps every row: the network runs once per rollout."""
-    r = torch.arange(key.shape[0], device=key.device)
-    return r, r
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def play(spec, cfg, instances: list[int], trial: int, distinct: bool) -> dict:
@@ -43,19 +43,12 @@ def play(spec, cfg, instances: list[int], trial: int, distinct: bool) -> dict:
         rows[0] += args[0].shape[0]
         return real(self, *args)
 
-    patches = [mock.patch.object(AttentionCore, "forward", counted)]
-    if not distinct:
-        patches.append(mock.patch.object(rollouts, "distinct_rows", every_row))
-    for p in patches:
-        p.start()
-    try:
+    merge = rollouts.distinct_rows if distinct else rollouts.every_row
+    with (mock.patch.object(AttentionCore, "forward", counted),
+          mock.patch.object(rollouts, "distinct_rows", merge), torch.inference_mode()):
         t0 = time.perf_counter()
-        with torch.inference_mode():
-            out = run_chunk(spec, cfg, instances, trial, checkpoint=str(spec.checkpoint(None)))
+        out = run_chunk(spec, cfg, instances, trial, checkpoint=str(spec.checkpoint(None)))
         wall = time.perf_counter() - t0
-    finally:
-        for p in patches:
-            p.stop()
     return {"wall": wall, "rows": rows[0], "trace": [r["trace"] for r in out]}
 
 
@@ -69,6 +62,9 @@ def main() -> None:
     keep_freed_memory()  # as the eval CLI does
     torch.set_num_threads(1)
     suite = load_protocol().suite(args.suite)
+    board = ROOT / "leaderboards" / f"{args.suite}.json"
+    spots = {(r["method"], r["setting"]): r["spot_check"] for r in
+             json.loads(board.read_text())["rows"]} if board.exists() else {}
     spec = algos.get_method(args.method)
     instances, trial = list(suite.instance_seeds[:args.instances]), suite.trial_seeds[0]
     print(f"{platform.machine()}, torch {torch.__version__}, 1 thread; {args.suite} "
@@ -80,6 +76,10 @@ def main() -> None:
         every = play(spec, cfg, instances, trial, distinct=False)
         once = play(spec, cfg, instances, trial, distinct=True)
         same = "identical" if once["trace"] == every["trace"] else "DIFFERENT"
+        spot = spots.get((args.method, setting.key))
+        if spot and spot["trial"] == trial and spot["instances"] == instances:
+            same += ", board's spot check " + (
+                "identical" if once["trace"] == spot["trace"] else "DIFFERENT")
         print(f"  {setting.key}: every rollout {every['wall']:6.1f} s, {every['rows']:8d} "
               f"rows | distinct paths {once['wall']:6.1f} s, {once['rows']:8d} rows | "
               f"{every['wall'] / once['wall']:.2f}x time, {every['rows'] / once['rows']:.2f}x "

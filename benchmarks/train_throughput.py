@@ -33,6 +33,7 @@ from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
 import maipp_bench.train as train_mod
+from maipp_bench.algos import rollouts
 from maipp_bench.algos.ppo import build_learner
 from maipp_bench.allocator import keep_freed_memory
 from maipp_bench.curves import read_curve
@@ -56,6 +57,9 @@ def main() -> None:
     p.add_argument("--updates", type=int, default=3)
     p.add_argument("--out")
     p.add_argument("--card", help="report a finished run's throughput from its card")
+    p.add_argument("--every-rollout", action="store_true",
+                   help="run the network on every TI rollout, not once per distinct path "
+                        "(the reference for benchmarks/ti_distinct_paths.py's speed-up)")
     p.add_argument("--split", type=int, nargs="*", default=[],
                    help="with --card: also report the updates between these update numbers")
     args = p.parse_args()
@@ -78,6 +82,8 @@ def main() -> None:
     env_cfg = MAIPPConfig.from_dict(OmegaConf.to_container(cfg.env))
     learner = build_learner(cfg.algo, env_cfg.node_encoding_dim, env_cfg.interest_threshold,
                             cfg.device)
+    if args.every_rollout:
+        rollouts.distinct_rows = rollouts.every_row
     if cfg.init:  # a fine-tune's throughput: a trained policy samples (and repeats) differently
         train_mod.init_weights(learner, cfg.init, cfg.algo, env_cfg.interest_threshold)
     optim = torch.optim.Adam(learner.parameters(), lr=cfg.algo.lr)

@@ -84,6 +84,13 @@ def distinct_rows(key: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return keep.scatter_reduce(0, back, r, "amin"), back
 
 
+def every_row(key: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`distinct_rows` without merging: every row kept (the network then runs once
+    per rollout; the reference the benchmarks and tests compare against)."""
+    r = torch.arange(key.shape[0], device=key.device)
+    return r, r
+
+
 def fantasy_rollouts(core: AttentionCore, env: MAIPPEnv, rows: TensorDictBase,
                      logits: torch.Tensor, hidden: torch.Tensor, e_idx: torch.Tensor,
                      a_idx: torch.Tensor, gumbel: torch.Tensor) -> Rollouts:
@@ -123,9 +130,8 @@ def fantasy_rollouts(core: AttentionCore, env: MAIPPEnv, rows: TensorDictBase,
     h = rep(hidden)
     alive = torch.ones(b * a, dtype=torch.bool, device=env.device)
     step_logits = rep(logits)
-    first = None
-    owner = torch.arange(b, device=env.device).repeat_interleave(a).unsqueeze(-1)
-    path: list[torch.Tensor] = []  # the slots each rollout sampled so far
+    # Each rollout's deciding agent, then the slots it sampled so far.
+    path = torch.arange(b, device=env.device).repeat_interleave(a).unsqueeze(-1)
     visited, visited_ok = [], []
     for step in range(j):
         if step > 0:  # the policy's input after the fantasy measurements so far
@@ -146,14 +152,12 @@ def fantasy_rollouts(core: AttentionCore, env: MAIPPEnv, rows: TensorDictBase,
             budget = (left / pool).clamp(0, 1).unsqueeze(-1)
             # Rollouts of one agent that sampled the same moves so far hold the same state,
             # so the network runs once per distinct path (a peaked policy repeats itself).
-            keep, back = distinct_rows(torch.cat([owner, torch.stack(path, 1)], 1))
+            keep, back = distinct_rows(path)
             step_logits, _, h = core(feats[keep], enc[keep], cur[keep], budget[keep],
                                      nbr[keep], mask[keep], h[keep])
             step_logits, h = step_logits[back], h[back]
         choice = (step_logits + gumbel[:, step]).argmax(-1)
-        path.append(choice)
-        if first is None:
-            first = choice
+        path = torch.cat([path, choice.unsqueeze(-1)], 1)
         nxt = nbr.gather(1, choice.unsqueeze(-1)).squeeze(-1)
         length = torch.where(alive, nbr_len.gather(1, choice.unsqueeze(-1)).squeeze(-1), 0.0)
         offsets, valid, since = sample_offsets(since, length, cfg.sample_spacing)
@@ -169,7 +173,7 @@ def fantasy_rollouts(core: AttentionCore, env: MAIPPEnv, rows: TensorDictBase,
     weight = st.grid_weight[er] if cfg.aoi_enabled else None
     trace = interest_trace(belief.mu[:, :g2, 0].double(), belief.sigma2[:, :g2].double(),
                            cfg.interest_beta, cfg.interest_threshold, weight)
-    return Rollouts(first=first.view(b, a), trace=trace.view(b, a),
+    return Rollouts(first=path[:, 1].view(b, a), trace=trace.view(b, a),
                     nodes=torch.stack(visited, 1).view(b, a * j, 2),
                     valid=torch.stack(visited_ok, 1).view(b, a * j))
 
