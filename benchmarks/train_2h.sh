@@ -9,13 +9,17 @@
 #            average of all of them (export_from=5-<last>).
 # Stage limits are minutes of update time (train's max_minutes); no stage evaluates on
 # held-out episodes; saves and start-up come on top, so the limits sum to less than 120.
-# Usage: bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3]
+# Usage: bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
+# LR3 is stage 3's Adam learning rate (default 1e-4, the paper's).
 set -euo pipefail
-OUT=${1:?usage: train_2h.sh OUT_DIR [SEED] [M1 M2 M3]}
+OUT=${1:?usage: train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]}
 SEED=${2:-0}
 M1=${3:-38}
 M2=${4:-37}
 M3=${5:-36}
+LR3=${6:-1e-4}
+[[ $LR3 =~ ^[0-9]+([.][0-9]+)?(e-?[0-9]+)?$ ]] \
+    || { echo "train_2h.sh: LR3 must be a positive number, got '$LR3'" >&2; exit 2; }
 for m in "$M1" "$M2" "$M3"; do  # minutes may be fractional (a short smoke run)
     [[ $m =~ ^[0-9]+([.][0-9]+)?$ ]] && [[ ! $m =~ ^0+([.]0+)?$ ]] \
         || { echo "train_2h.sh: stage minutes must be positive numbers, got '$m'" >&2; exit 2; }
@@ -34,7 +38,7 @@ $TRAIN resume="$OUT/stage2/checkpoint.pt" algo.intent_rollouts=4 algo.intent_dep
     n_envs=16 algo.epochs=4 algo.target_kl=0.02 max_minutes="$M12" eval_every=0
 echo "stage2 done $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
 
-$TRAIN init="$OUT/stage2/checkpoint.pt" seed="$((SEED + 2))" algo.lr=1e-4 \
+$TRAIN init="$OUT/stage2/checkpoint.pt" seed="$((SEED + 2))" algo.lr="$LR3" \
     algo.intent_rollouts=8 algo.intent_depth=5 n_envs=16 algo.epochs=4 algo.target_kl=0.02 \
     max_minutes="$M3" eval_every=0 keep_snapshots=true snapshot_every=5 \
     hydra.run.dir="$OUT/stage3"
