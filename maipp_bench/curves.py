@@ -88,7 +88,13 @@ def figure(sources: dict[str, list[dict[str, Any]]],
         # Thousands as "20k": full numbers run into each other on narrow panels.
         ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x / 1000:g}k" if x else "0"))
         ax.grid(alpha=0.3)
-    axes[0].legend()
+    # One legend beside the panels (not over them): every curve once, even one that has
+    # no points in the first panel.
+    entries = {}
+    for ax in axes:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            entries.setdefault(label, handle)
+    fig.legend(entries.values(), entries.keys(), loc="outside right upper", fontsize=8)
     return fig
 
 

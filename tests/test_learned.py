@@ -366,7 +366,9 @@ def test_a_curve_keeps_its_colour_in_every_panel():
     fig = figure({"a": a, "b": b}, selected={"a": 2, "b": 2})
     colors = [{line.get_label(): line.get_color() for line in ax.get_lines()}
               for ax in fig.axes]
+    legend = [t.get_text() for t in fig.legends[0].get_texts()]
     plt.close(fig)  # pyplot's figure list stays empty for other tests (test_viz)
+    assert legend == ["a", "a: selected update", "b", "b: selected update"]
     assert "a" not in colors[1]
     assert colors[0]["a"] != colors[0]["b"]
     for panel in colors:
