@@ -321,6 +321,17 @@ def test_two_hour_script_rejects_bad_minutes_before_training(minutes, tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("lr", ["0", "0e-5", "-1e-4", "fast"])
+def test_two_hour_script_rejects_a_bad_stage3_learning_rate(lr, tmp_path):
+    script = Path(__file__).parents[1] / "benchmarks" / "train_2h.sh"
+    out = tmp_path / "run"
+    proc = subprocess.run(["bash", str(script), str(out), "0", "1", "2", "3", lr],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert "LR3 must be a positive number" in proc.stderr
+    assert not out.exists()
+
+
 def test_training_curve_plot(tiny_checkpoint, tmp_path):
     from maipp_bench.curves import main, read_curve
 
