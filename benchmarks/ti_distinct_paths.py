@@ -43,9 +43,8 @@ def play(spec, cfg, instances: list[int], trial: int, distinct: bool) -> dict:
         rows[0] += args[0].shape[0]
         return real(self, *args)
 
-    merge = rollouts.distinct_rows if distinct else rollouts.every_row
     with (mock.patch.object(AttentionCore, "forward", counted),
-          mock.patch.object(rollouts, "distinct_rows", merge), torch.inference_mode()):
+          rollouts.path_merging(distinct), torch.inference_mode()):
         t0 = time.perf_counter()
         out = run_chunk(spec, cfg, instances, trial, checkpoint=str(spec.checkpoint(None)))
         wall = time.perf_counter() - t0

@@ -18,7 +18,8 @@ M1=${3:-38}
 M2=${4:-37}
 M3=${5:-36}
 LR3=${6:-1e-4}
-[[ $LR3 =~ ^[0-9]+([.][0-9]+)?(e-?[0-9]+)?$ ]] && python -c "assert float('$LR3') > 0" 2>/dev/null \
+[[ $LR3 =~ ^[0-9]+([.][0-9]+)?(e-?[0-9]+)?$ ]] \
+    && python -c "import sys; sys.exit(float(sys.argv[1]) <= 0)" "$LR3" \
     || { echo "train_2h.sh: LR3 must be a positive number, got '$LR3'" >&2; exit 2; }
 for m in "$M1" "$M2" "$M3"; do  # minutes may be fractional (a short smoke run)
     [[ $m =~ ^[0-9]+([.][0-9]+)?$ ]] && [[ ! $m =~ ^0+([.]0+)?$ ]] \

@@ -82,29 +82,28 @@ def main() -> None:
     env_cfg = MAIPPConfig.from_dict(OmegaConf.to_container(cfg.env))
     learner = build_learner(cfg.algo, env_cfg.node_encoding_dim, env_cfg.interest_threshold,
                             cfg.device)
-    if args.every_rollout:
-        rollouts.distinct_rows = rollouts.every_row
     if cfg.init:  # a fine-tune's throughput: a trained policy samples (and repeats) differently
         train_mod.init_weights(learner, cfg.init, cfg.algo, env_cfg.interest_threshold)
     optim = torch.optim.Adam(learner.parameters(), lr=cfg.algo.lr)
     _, collector, buffer = train_mod.make_collection(cfg, env_cfg, learner)
     times = {"collect": 0.0, "decisions": 0.0, "learn": 0.0}
     frames = decisions = passes = 0
-    for update in range(args.updates + 1):
-        t0 = time.perf_counter()
-        batch = collector.next()
-        t1 = time.perf_counter()
-        rows = train_mod.collected_decisions(learner, batch, cfg.algo)
-        t2 = time.perf_counter()
-        train_mod.learn(learner, optim, buffer, rows, cfg.algo)
-        passes += cfg.algo.epochs * rows.numel() if update else 0
-        t3 = time.perf_counter()
-        if update:  # the first update warms up
-            times["collect"] += t1 - t0
-            times["decisions"] += t2 - t1
-            times["learn"] += t3 - t2
-            frames += batch.numel()
-            decisions += rows.numel()
+    with rollouts.path_merging(not args.every_rollout):
+        for update in range(args.updates + 1):
+            t0 = time.perf_counter()
+            batch = collector.next()
+            t1 = time.perf_counter()
+            rows = train_mod.collected_decisions(learner, batch, cfg.algo)
+            t2 = time.perf_counter()
+            train_mod.learn(learner, optim, buffer, rows, cfg.algo)
+            passes += cfg.algo.epochs * rows.numel() if update else 0
+            t3 = time.perf_counter()
+            if update:  # the first update warms up
+                times["collect"] += t1 - t0
+                times["decisions"] += t2 - t1
+                times["learn"] += t3 - t2
+                frames += batch.numel()
+                decisions += rows.numel()
     collector.shutdown()
     total = sum(times.values())
     result = {

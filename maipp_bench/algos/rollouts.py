@@ -13,6 +13,8 @@ the episode's counter-based noise) and while collecting training data
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -85,10 +87,25 @@ def distinct_rows(key: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def every_row(key: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`distinct_rows` without merging: every row kept (the network then runs once
-    per rollout; the reference the benchmarks and tests compare against)."""
+    """:func:`distinct_rows` without merging: every row kept."""
     r = torch.arange(key.shape[0], device=key.device)
     return r, r
+
+
+_merge_paths = True  # read by fantasy_rollouts; set only through path_merging
+
+
+@contextmanager
+def path_merging(on: bool) -> Iterator[None]:
+    """Within it, rollouts that sampled the same path share one network pass (``on``, what
+    every method does) or each get their own (off: the reference that tests and benchmarks
+    compare against; the same bits from more network rows)."""
+    global _merge_paths
+    before, _merge_paths = _merge_paths, on
+    try:
+        yield
+    finally:
+        _merge_paths = before
 
 
 def fantasy_rollouts(core: AttentionCore, env: MAIPPEnv, rows: TensorDictBase,
@@ -152,7 +169,7 @@ def fantasy_rollouts(core: AttentionCore, env: MAIPPEnv, rows: TensorDictBase,
             budget = (left / pool).clamp(0, 1).unsqueeze(-1)
             # Rollouts of one agent that sampled the same moves so far hold the same state,
             # so the network runs once per distinct path (a peaked policy repeats itself).
-            keep, back = distinct_rows(path)
+            keep, back = (distinct_rows if _merge_paths else every_row)(path)
             step_logits, _, h = core(feats[keep], enc[keep], cur[keep], budget[keep],
                                      nbr[keep], mask[keep], h[keep])
             step_logits, h = step_logits[back], h[back]
