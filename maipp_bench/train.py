@@ -20,7 +20,6 @@ import json
 import math
 import platform
 import shlex
-import subprocess
 import sys
 import time
 import warnings
@@ -60,6 +59,7 @@ from maipp_bench.allocator import keep_freed_memory
 from maipp_bench.envs import rng
 from maipp_bench.envs.config import MAIPPConfig, check_device
 from maipp_bench.envs.maipp_env import MAIPPEnv
+from maipp_bench.protocol.leaderboard import git_commit
 from maipp_bench.protocol.protocol import file_sha256, load_protocol
 from maipp_bench.protocol.runner import run_chunk
 
@@ -400,14 +400,6 @@ def _with_init(card: dict[str, Any], lineage: dict[str, Any] | None, key: str) -
     return total
 
 
-def _commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
-                              cwd=Path(__file__).parent, check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
 def train(cfg: Any, run_dir: Path) -> Path:
     """Train the configured method into ``run_dir``; returns the checkpoint path."""
     torch.set_num_threads(cfg.threads)
@@ -439,7 +431,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
     start, frames, episodes, wall, curve = 0, 0, 0, 0.0, []
     best = math.inf  # lowest held-out eval Tr(P) so far (model selection never sees the protocol)
     commands = [_command()]  # every invocation that contributed, in order
-    commit = _commit()  # the code of the updates this invocation runs
+    commit = git_commit()  # the code of the updates this invocation runs
     init = cfg.init  # the network the run started from (kept through resumes)
     if cfg.resume:
         state = torch.load(cfg.resume, map_location=cfg.device, weights_only=False)
@@ -652,18 +644,19 @@ def write_card(cfg: Any, sources: list[Path], last: Path, out: Path) -> None:
         "seed": run["config"]["seed"],
         # The code of the network's last update where its file records it (checkpoints
         # since 2026-11-25), else the code writing the card.
-        "commit": chosen.get("commit") or _commit(),
+        "commit": chosen.get("commit") or git_commit(),
         "updates": run["update"],
         "selected_update": chosen["update"],
         "selected_by": f"{how}, {cfg.export_note}" if cfg.export_note else how,
         "frames": run["frames"],
         "wall_s": run["wall_s"],
         "machine": f"{platform.machine()} {platform.processor() or ''}".strip()
-        + f", {torch.get_num_threads()} torch thread(s), device {cfg.device}",
+        + f", {torch.get_num_threads()} torch thread(s), device {cfg.device}"
+        + (f" ({torch.cuda.get_device_name(cfg.device)})" if "cuda" in cfg.device else ""),
     }
     if snapshot:
         card |= {"run_continued_to": state["update"], "exported_with": _command(),
-                 "exported_at_commit": _commit()}
+                 "exported_at_commit": git_commit()}
         if "averaged_updates" in chosen:
             card["averaged_updates"] = chosen["averaged_updates"]
     lineage = init_lineage(recorded_init(run))

@@ -308,20 +308,21 @@ def test_bad_overrides_get_clear_errors(override, message, tmp_path):
     assert message in proc.stderr
 
 
-@pytest.mark.parametrize("args, message", [
-    *[(m, "stage minutes must be positive numbers")
+@pytest.mark.parametrize("script, args, message", [
+    *[("train_2h.sh", m, "stage minutes must be positive numbers")
       for m in (["1", "-2", "3"], ["0", "2", "3"], ["1", "2", "abc"],
                 ["1", "-2", "3", "3e-5"])],  # a good LR3 passes its own check
-    *[(["1", "2", "3", lr], "LR3 must be a positive number")
-      for lr in ("0", "0e-5", "-1e-4", "fast")]])
-def test_two_hour_script_rejects_bad_arguments_before_training(args, message, tmp_path):
-    """benchmarks/train_2h.sh checks its stage minutes and stage 3's learning rate first:
-    a bad minute used to reach bash arithmetic, which skipped a stage with only a printed
-    error."""
-    script = Path(__file__).parents[1] / "benchmarks" / "train_2h.sh"
+    *[("train_2h.sh", ["1", "2", "3", lr], "LR3 must be a positive number")
+      for lr in ("0", "0e-5", "-1e-4", "fast")],
+    *[("train_gpu.sh", m, "MINUTES must be a positive number") for m in (["0"], ["-1"], ["x"])],
+    *[("train_gpu.sh", ["6", n], "N_ENVS must be a positive integer") for n in ("0", "1.5")]])
+def test_training_scripts_reject_bad_arguments_before_training(script, args, message,
+                                                                tmp_path):
+    """benchmarks/train_2h.sh and train_gpu.sh check their numbers first: a bad minute used
+    to reach bash arithmetic, which skipped a stage with only a printed error."""
     out = tmp_path / "run"
-    proc = subprocess.run(["bash", str(script), str(out), "0", *args], capture_output=True,
-                          text=True, timeout=60)
+    proc = subprocess.run(["bash", str(Path(__file__).parents[1] / "benchmarks" / script),
+                           str(out), "0", *args], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert message in proc.stderr
     assert not out.exists()

@@ -29,13 +29,16 @@ TIMING_FIELDS = ("planning_s_per_episode",)
 
 
 def git_commit() -> str:
+    """The checkout's HEAD; where the code is a copy without ``.git`` (a lent GPU machine
+    gets the working tree alone), ``$MAIPP_BENCH_COMMIT`` names it; else "unknown"."""
     try:
         root = Path(maipp_bench.__file__).resolve().parent.parent
         out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
                              text=True, timeout=10)
-        return out.stdout.strip() or "unknown"
+        head = out.stdout.strip() if out.returncode == 0 else ""
     except (OSError, subprocess.SubprocessError):
-        return "unknown"
+        head = ""
+    return head or os.environ.get("MAIPP_BENCH_COMMIT") or "unknown"
 
 
 def machine() -> dict[str, Any]:
