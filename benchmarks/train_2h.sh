@@ -35,7 +35,9 @@ $TRAIN seed="$SEED" algo.intent_rollouts=4 algo.intent_depth=5 max_minutes="$M1"
 echo "stage1 done $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
 
 mkdir -p "$OUT/stage2" && cp "$OUT/stage1/checkpoint.pt" "$OUT/stage2/checkpoint.pt"
-$TRAIN resume="$OUT/stage2/checkpoint.pt" algo.intent_rollouts=4 algo.intent_depth=5 \
+# seed=0: until 2026-11-26 a resume took untyped fields from the defaults, so every draw's
+# stage 2 reset its worlds from seed 0; typed, so that the documented draws reproduce.
+$TRAIN resume="$OUT/stage2/checkpoint.pt" seed=0 algo.intent_rollouts=4 algo.intent_depth=5 \
     n_envs=16 algo.epochs=4 algo.target_kl=0.02 max_minutes="$M12" eval_every=0
 echo "stage2 done $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
 

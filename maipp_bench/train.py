@@ -400,6 +400,59 @@ def _with_init(card: dict[str, Any], lineage: dict[str, Any] | None, key: str) -
     return total
 
 
+# Fields that say where and how this invocation runs, not what the run trains: a resumed run
+# takes them from its own command line, never from the checkpoint.
+INVOCATION_FIELDS = ("device", "threads", "progress", "resume", "init", "export", "export_from",
+                     "export_note")
+
+
+_ABSENT = object()
+
+
+def _leaves(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        path = f"{prefix}{key}"
+        out |= _leaves(value, path + ".") if isinstance(value, dict) else {path: value}
+    return out
+
+
+def resumed_config(cfg: Any, overrides: list[str]) -> Any:
+    """``cfg`` with the checkpoint's recipe (``cfg.resume``): every field that ``overrides``
+    (this command line) does not set comes from the run's own config, so ``resume=<path>``
+    alone continues the run as it was started (n_envs, intents, seed, ...); a field typed
+    again takes the new value (how benchmarks/train_2h.sh changes stage 2's settings).
+
+    A group typed again (``algo=ours``) only names the run's group: a different algo is an
+    error (its network would not load); the fields of ``env``/``logger`` still come from
+    the checkpoint. What came from the checkpoint and differs from this command's own
+    config is printed."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    saved = torch.load(cfg.resume, map_location="cpu", weights_only=False, mmap=True)
+    saved = saved.get("config")
+    if saved is None:  # checkpoints before configs were saved: this command's config
+        return cfg
+    typed = {o.key_or_group for o in OverridesParser.create().parse_overrides(overrides)}
+    if "algo" in typed and cfg.algo.name != saved["algo"]["name"]:
+        raise ValueError(f"resume={cfg.resume} continues a run of algo "
+                         f"'{saved['algo']['name']}', not algo={cfg.algo.name}: start a new "
+                         "run, or fine-tune its network with init=<path>")
+    out, inherited = cfg.copy(), []
+    for path, value in _leaves(saved).items():
+        if (path.split(".")[0] in INVOCATION_FIELDS
+                or any(path == t or path.startswith(t + ".") for t in typed if t not in
+                       ("algo", "env", "logger"))
+                or OmegaConf.select(out, path, default=_ABSENT) is _ABSENT):  # a retired field
+            continue
+        if OmegaConf.select(out, path) != value:
+            inherited.append(f"{path}={value!r} (this command: {OmegaConf.select(out, path)!r})")
+            OmegaConf.update(out, path, value, merge=False)
+    if inherited:
+        print("resume: the run's own settings, kept:\n  " + "\n  ".join(inherited))
+    return out
+
+
 def train(cfg: Any, run_dir: Path) -> Path:
     """Train the configured method into ``run_dir``; returns the checkpoint path."""
     torch.set_num_threads(cfg.threads)
@@ -672,6 +725,8 @@ def main(cfg: Any) -> None:
     """Hydra entry point: the run folder is Hydra's output folder."""
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     keep_freed_memory()
+    if cfg.resume:
+        cfg = resumed_config(cfg, list(HydraConfig.get().overrides.task))
     path = train(cfg, run_dir)
     print(f"checkpoint: {path}")
 

@@ -76,17 +76,19 @@ def test_committed_row_spot_check_recomputes(board, row):
     assert [r["trace"] for r in rows] == pytest.approx(spot["trace"], rel=1e-9, abs=1e-9)
 
 
-def test_git_commit_of_a_copy_without_git(monkeypatch):
-    """A lent GPU machine gets the working tree without ``.git``: $MAIPP_BENCH_COMMIT names
-    the commit there, and a checkout's own HEAD wins over it."""
+def test_git_commit_named_by_the_environment(monkeypatch):
+    """A lent GPU machine's copy of the tree may carry a stale ``.git``: the commit the
+    command names ($MAIPP_BENCH_COMMIT) wins over it; without either, "unknown"."""
     import subprocess
 
     from maipp_bench.protocol import leaderboard
 
+    monkeypatch.delenv("MAIPP_BENCH_COMMIT", raising=False)
+    head = leaderboard.git_commit()
+    assert len(head) == 40 and int(head, 16) >= 0  # this checkout has .git
     monkeypatch.setenv("MAIPP_BENCH_COMMIT", "f" * 40)
-    assert leaderboard.git_commit() != "f" * 40  # this checkout has .git
-    monkeypatch.setattr(leaderboard.subprocess, "run", lambda *a, **k: subprocess.
-                        CompletedProcess(a, 128, "", "fatal: not a git repository"))
     assert leaderboard.git_commit() == "f" * 40
     monkeypatch.delenv("MAIPP_BENCH_COMMIT")
+    monkeypatch.setattr(leaderboard.subprocess, "run", lambda *a, **k: subprocess.
+                        CompletedProcess(a, 128, "", "fatal: not a git repository"))
     assert leaderboard.git_commit() == "unknown"

@@ -151,6 +151,32 @@ def test_killed_and_resumed_training_continues_the_same_curve(tmp_path, intents)
     assert len(lines) == 3
 
 
+def test_resume_alone_continues_the_run_as_it_was_started(tmp_path, capsys):
+    """``resume=<path>`` with none of the first command's settings keeps them (envs, seed,
+    intents, the tiny world), so the curve is the uninterrupted one; a setting typed again
+    wins; another algo is an error. (Once, a resume took untyped fields from the defaults:
+    a GPU run of 128 envs with intents went on with 8 envs and none.)"""
+    from maipp_bench.train import resumed_config, train
+
+    run = [*TINY_TRAIN, "checkpoint_every=1", "seed=3", "algo.intent_rollouts=2",
+           "algo.intent_depth=2"]
+    full = train(compose_train(*run, "total_updates=2"), tmp_path / "full")
+    part = train(compose_train(*run, "total_updates=1"), tmp_path / "part")
+    typed = [f"resume={part}", "total_updates=2", "progress=false"]
+    cfg = resumed_config(compose_train(*typed), typed)
+    assert "n_envs=3 (this command: 8)" in capsys.readouterr().out
+    assert (cfg.seed, cfg.n_envs, cfg.algo.intent_rollouts, cfg.env.n_nodes) == (3, 3, 2, 30)
+    a = torch.load(full, weights_only=False)
+    b = torch.load(train(cfg, tmp_path / "elsewhere"), weights_only=False)
+    assert all(torch.equal(t, b["core"][k]) for k, t in a["core"].items())
+    strip = lambda curve: [{k: v for k, v in r.items() if k != "wall_s"} for r in curve]  # noqa: E731
+    assert strip(a["curve"]) == strip(b["curve"])
+    again = resumed_config(compose_train(*typed, "n_envs=2"), [*typed, "n_envs=2"])
+    assert (again.n_envs, again.seed) == (2, 3)
+    with pytest.raises(ValueError, match="continues a run of algo 'ours', not algo=catnipp"):
+        resumed_config(compose_train("algo=catnipp", *typed), ["algo=catnipp", *typed])
+
+
 @pytest.mark.parametrize("mode", ["greedy", "ti"])
 def test_learned_policy_plays_valid_reproducible_episodes(tiny_checkpoint, mode):
     cfg = MAIPPConfig(n_agents=2, budget=1.0, n_nodes=40, k_neighbors=8)

@@ -29,16 +29,18 @@ TIMING_FIELDS = ("planning_s_per_episode",)
 
 
 def git_commit() -> str:
-    """The checkout's HEAD; where the code is a copy without ``.git`` (a lent GPU machine
-    gets the working tree alone), ``$MAIPP_BENCH_COMMIT`` names it; else "unknown"."""
+    """``$MAIPP_BENCH_COMMIT`` where set (a lent GPU machine's copy of the tree can carry a
+    stale ``.git``: one run there read the session's first HEAD), else the checkout's
+    HEAD, else "unknown"."""
+    if os.environ.get("MAIPP_BENCH_COMMIT"):
+        return os.environ["MAIPP_BENCH_COMMIT"]
     try:
         root = Path(maipp_bench.__file__).resolve().parent.parent
         out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
                              text=True, timeout=10)
-        head = out.stdout.strip() if out.returncode == 0 else ""
+        return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else "unknown"
     except (OSError, subprocess.SubprocessError):
-        head = ""
-    return head or os.environ.get("MAIPP_BENCH_COMMIT") or "unknown"
+        return "unknown"
 
 
 def machine() -> dict[str, Any]:
