@@ -423,10 +423,10 @@ def resumed_config(cfg: Any, overrides: list[str]) -> Any:
     alone continues the run as it was started (n_envs, intents, seed, ...); a field typed
     again takes the new value (how benchmarks/train_2h.sh changes stage 2's settings).
 
-    A group typed again (``algo=ours``) only names the run's group: a different algo is an
-    error (its network would not load); the fields of ``env``/``logger`` still come from
-    the checkpoint. What came from the checkpoint and differs from this command's own
-    config is printed."""
+    ``algo=``/``env=`` typed again only name the run's groups: a different algo is an
+    error (its network would not load), and the env's fields still come from the
+    checkpoint; ``logger=`` switches where this command logs. What came from the checkpoint
+    and differs from this command's own config is printed."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     saved = torch.load(cfg.resume, map_location="cpu", weights_only=False, mmap=True)
@@ -441,8 +441,8 @@ def resumed_config(cfg: Any, overrides: list[str]) -> Any:
     out, inherited = cfg.copy(), []
     for path, value in _leaves(saved).items():
         if (path.split(".")[0] in INVOCATION_FIELDS
-                or any(path == t or path.startswith(t + ".") for t in typed if t not in
-                       ("algo", "env", "logger"))
+                or any(path == t or path.startswith(t + ".") for t in typed
+                       if t not in ("algo", "env"))  # logger=wandb: log there from now on
                 or OmegaConf.select(out, path, default=_ABSENT) is _ABSENT):  # a retired field
             continue
         if OmegaConf.select(out, path) != value:

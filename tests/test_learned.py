@@ -173,6 +173,9 @@ def test_resume_alone_continues_the_run_as_it_was_started(tmp_path, capsys):
     assert strip(a["curve"]) == strip(b["curve"])
     again = resumed_config(compose_train(*typed, "n_envs=2"), [*typed, "n_envs=2"])
     assert (again.n_envs, again.seed) == (2, 3)
+    logs = resumed_config(compose_train(*typed, "logger=tensorboard"),
+                          [*typed, "logger=tensorboard"])  # a typed logger switches
+    assert (logs.logger.backend, logs.n_envs) == ("tensorboard", 3)
     with pytest.raises(ValueError, match="continues a run of algo 'ours', not algo=catnipp"):
         resumed_config(compose_train("algo=catnipp", *typed), ["algo=catnipp", *typed])
 
