@@ -10,11 +10,10 @@
 # narrow one; learning grows with it.
 # Usage: bash benchmarks/train_gpu.sh OUT_DIR [SEED] [MINUTES] [N_ENVS] [OVERRIDE ...]
 # MINUTES is train's max_minutes (update time; start-up and saves come on top, and the
-# update that crosses it still ends). DEVICE (default cuda), THREADS (default 1) and
-# ROLLOUTS (intent rollouts a, default 8; 0 trains without intents) come from the
-# environment; further arguments are Hydra overrides (a CPU smoke test: env=tiny).
+# update that crosses it still ends). Further arguments are Hydra overrides and win over
+# the script's (a CPU smoke test: device=cpu env=tiny; no intents: algo.intent_rollouts=0).
 set -euo pipefail
-OUT=${1:?usage: train_gpu.sh OUT_DIR [SEED] [MINUTES] [N_ENVS]}
+OUT=${1:?usage: train_gpu.sh OUT_DIR [SEED] [MINUTES] [N_ENVS] [OVERRIDE ...]}
 SEED=${2:-0}
 MINUTES=${3:-6.5}
 N_ENVS=${4:-128}
@@ -25,8 +24,8 @@ N_ENVS=${4:-128}
     || { echo "train_gpu.sh: N_ENVS must be a positive integer, got '$N_ENVS'" >&2; exit 2; }
 mkdir -p "$OUT"
 echo "start $(date -u +%FT%TZ)" | tee "$OUT/wall.txt"
-python -m maipp_bench.train algo=ours device="${DEVICE:-cuda}" threads="${THREADS:-1}" \
-    seed="$SEED" n_envs="$N_ENVS" algo.intent_rollouts="${ROLLOUTS:-8}" algo.intent_depth=5 \
+python -m maipp_bench.train algo=ours device=cuda threads=1 \
+    seed="$SEED" n_envs="$N_ENVS" algo.intent_rollouts=8 algo.intent_depth=5 \
     max_minutes="$MINUTES" total_updates=100000 checkpoint_every=1 eval_every=0 \
     progress=false hydra.run.dir="$OUT/run" export="$OUT/policy.pt" export_from=last \
     "export_note='benchmarks/train_gpu.sh: the last update, fixed before the run'" "${@:5}"

@@ -32,7 +32,7 @@ import hydra
 import torch
 from hydra.core.config_store import ConfigStore
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import OmegaConf
+from omegaconf import OmegaConf, ValidationError
 from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
 from torchrl.data import Composite, LazyTensorStorage, ReplayBuffer, Unbounded
@@ -447,7 +447,12 @@ def resumed_config(cfg: Any, overrides: list[str]) -> Any:
             continue
         if OmegaConf.select(out, path) != value:
             inherited.append(f"{path}={value!r} (this command: {OmegaConf.select(out, path)!r})")
-            OmegaConf.update(out, path, value, merge=False)
+            try:
+                OmegaConf.update(out, path, value, merge=False)
+            except ValidationError as err:  # a field whose type changed since the checkpoint
+                why = err.msg.splitlines()[0]
+                raise ValueError(f"resume={cfg.resume}: its {path}={value!r} does not fit "
+                                 f"this code's config ({why}); type {path}=...") from err
     if inherited:
         print("resume: the run's own settings, kept:\n  " + "\n  ".join(inherited))
     return out
@@ -476,6 +481,9 @@ def train(cfg: Any, run_dir: Path) -> Path:
     torch.manual_seed(cfg.seed)  # the network's initial weights
     learner = build_learner(cfg.algo, env_cfg.node_encoding_dim, env_cfg.interest_threshold,
                             cfg.device)
+    if cfg.init and cfg.resume:
+        warnings.warn(f"init={cfg.init} is ignored: resume={cfg.resume} continues its own "
+                      "weights", stacklevel=2)
     if cfg.init and not cfg.resume:
         init_weights(learner, cfg.init, cfg.algo, env_cfg.interest_threshold)
     optim = torch.optim.Adam(learner.parameters(), lr=cfg.algo.lr)
@@ -510,6 +518,10 @@ def train(cfg: Any, run_dir: Path) -> Path:
             write_card(cfg, export_sources(cfg.export_from, ckpt_path), ckpt_path,
                        Path(cfg.export))
             return ckpt_path
+    if start < cfg.total_updates and 0 < cfg.max_minutes <= wall / 60:  # else one update more
+        raise ValueError(f"resume={cfg.resume} has used {wall / 60:.2f} minutes of update "
+                         f"time, max_minutes={cfg.max_minutes}: type a higher max_minutes "
+                         "to continue it")
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "curve.jsonl").write_text("".join(json.dumps(r) + "\n" for r in curve))
 

@@ -176,8 +176,21 @@ def test_resume_alone_continues_the_run_as_it_was_started(tmp_path, capsys):
     logs = resumed_config(compose_train(*typed, "logger=tensorboard"),
                           [*typed, "logger=tensorboard"])  # a typed logger switches
     assert (logs.logger.backend, logs.n_envs) == ("tensorboard", 3)
+    world = resumed_config(compose_train("env=risk_aware", *typed), ["env=risk_aware", *typed])
+    assert world.env.n_nodes == 30  # env= names the group; the run's world stays
+    here = resumed_config(compose_train(f"resume={part}"), [f"resume={part}"])
+    assert here.progress is True  # saved false: where it runs is this command's
     with pytest.raises(ValueError, match="continues a run of algo 'ours', not algo=catnipp"):
         resumed_config(compose_train("algo=catnipp", *typed), ["algo=catnipp", *typed])
+    with pytest.raises(ValueError, match="type a higher max_minutes"):  # not one update more
+        train(resumed_config(compose_train(*typed, "total_updates=5", "max_minutes=1e-6"),
+                             [*typed, "total_updates=5", "max_minutes=1e-6"]), tmp_path / "y")
+    cli = subprocess.run([sys.executable, "-m", "maipp_bench.train", f"resume={part}",
+                          "total_updates=3", "progress=false"],
+                         capture_output=True, text=True, timeout=300)  # main()'s wiring
+    assert cli.returncode == 0, cli.stderr
+    assert "n_envs=3 (this command: 8)" in cli.stdout
+    assert torch.load(part, weights_only=False)["config"]["n_envs"] == 3
 
 
 @pytest.mark.parametrize("mode", ["greedy", "ti"])
@@ -344,14 +357,16 @@ def test_bad_overrides_get_clear_errors(override, message, tmp_path):
     *[("train_2h.sh", ["1", "2", "3", lr], "LR3 must be a positive number")
       for lr in ("0", "0e-5", "-1e-4", "fast")],
     *[("train_gpu.sh", m, "MINUTES must be a positive number") for m in (["0"], ["-1"], ["x"])],
-    *[("train_gpu.sh", ["6", n], "N_ENVS must be a positive integer") for n in ("0", "1.5")]])
+    *[("train_gpu.sh", ["6", n], "N_ENVS must be a positive integer") for n in ("0", "1.5")],
+    ("train_gpu.sh", "x", "SEED must be an integer")])
 def test_training_scripts_reject_bad_arguments_before_training(script, args, message,
                                                                 tmp_path):
     """benchmarks/train_2h.sh and train_gpu.sh check their numbers first: a bad minute used
     to reach bash arithmetic, which skipped a stage with only a printed error."""
     out = tmp_path / "run"
+    seed, args = (args, []) if isinstance(args, str) else ("0", args)
     proc = subprocess.run(["bash", str(Path(__file__).parents[1] / "benchmarks" / script),
-                           str(out), "0", *args], capture_output=True, text=True, timeout=60)
+                           str(out), seed, *args], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2
     assert message in proc.stderr
     assert not out.exists()

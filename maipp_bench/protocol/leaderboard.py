@@ -14,6 +14,7 @@ import math
 import os
 import platform
 import subprocess
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -29,18 +30,22 @@ TIMING_FIELDS = ("planning_s_per_episode",)
 
 
 def git_commit() -> str:
-    """``$MAIPP_BENCH_COMMIT`` where set (a lent GPU machine's copy of the tree can carry a
-    stale ``.git``: one run there read the session's first HEAD), else the checkout's
-    HEAD, else "unknown"."""
-    if os.environ.get("MAIPP_BENCH_COMMIT"):
-        return os.environ["MAIPP_BENCH_COMMIT"]
+    """The code's commit: ``$MAIPP_BENCH_COMMIT`` where set (a lent GPU machine's copy of
+    the tree can carry a stale ``.git``: one run there read the session's first HEAD),
+    with a warning where the checkout's HEAD says otherwise; else that HEAD; else
+    "unknown"."""
     try:
         root = Path(maipp_bench.__file__).resolve().parent.parent
         out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True,
                              text=True, timeout=10)
-        return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else "unknown"
+        head = out.stdout.strip() if out.returncode == 0 else ""
     except (OSError, subprocess.SubprocessError):
-        return "unknown"
+        head = ""
+    named = os.environ.get("MAIPP_BENCH_COMMIT", "")
+    if named and head and named != head:
+        warnings.warn(f"MAIPP_BENCH_COMMIT={named} is recorded as the code's commit, but "
+                      f"this checkout's HEAD is {head}", stacklevel=2)
+    return named or head or "unknown"
 
 
 def machine() -> dict[str, Any]:
