@@ -521,7 +521,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
     if start < cfg.total_updates and 0 < cfg.max_minutes <= wall / 60:  # else one update more
         raise ValueError(f"resume={cfg.resume} has used {wall / 60:.2f} minutes of update "
                          f"time, max_minutes={cfg.max_minutes}: type a higher max_minutes "
-                         "to continue it")
+                         "to continue it (or total_updates=0 to export only)")
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "curve.jsonl").write_text("".join(json.dumps(r) + "\n" for r in curve))
 
