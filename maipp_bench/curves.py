@@ -70,6 +70,8 @@ def figure(sources: dict[str, list[dict[str, Any]]],
     each curve's ``selected`` frames."""
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.6), constrained_layout=True)
     cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    if len(sources) > len(cycle):  # past the cycle's ten, colours would repeat: tab20's
+        cycle = [plt.get_cmap("tab20")(i) for i in range(20)]
     colors = {name: cycle[i % len(cycle)] for i, name in enumerate(sources)}
     panels = [("trace_final", "Tr(P_f), training episodes"),
               ("eval/trace", eval_title(sources)),

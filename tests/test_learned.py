@@ -427,6 +427,20 @@ def test_a_curve_keeps_its_colour_in_every_panel():
         assert panel["a: selected update"] == colors[0]["a"]  # drawn where "a" has no points
 
 
+def test_eleven_curves_have_eleven_colours():
+    """Past the default cycle's ten colours the eleventh curve took the first's (the
+    two-hour draws' figure drew the shipped run and a draw in one blue)."""
+    import matplotlib.pyplot as plt
+
+    from maipp_bench.curves import figure
+
+    rows = [{"update": 1, "frames": 1, "trace_final": 1.0, "reward_per_decision": 0.1}]
+    fig = figure({f"c{i}": rows for i in range(11)})
+    colors = {str(line.get_color()) for line in fig.axes[0].get_lines()}
+    plt.close(fig)
+    assert len(colors) == 11
+
+
 def test_eval_panel_title_names_the_evaluations():
     from maipp_bench.curves import eval_title
 
