@@ -7,7 +7,9 @@
 #   per update; no held-out evaluation; the policy file is the last update.
 # On the GPU collection is bound by launch latency, not by envs (docs/performance.md: 64 and
 # 256 envs collect in 8 and 13 s), so a wide batch costs little more per update than a
-# narrow one; learning grows with it.
+# narrow one; learning grows with it. But per env frame 128 envs learned far less than the
+# CPU's 8-16 in the first run (2026-11-26, docs/results.md "The recipe on one lent GPU"):
+# PPO's progress comes from the number of updates, so try a narrow N_ENVS next.
 # Usage: bash benchmarks/train_gpu.sh OUT_DIR [SEED] [MINUTES] [N_ENVS] [OVERRIDE ...]
 # MINUTES is train's max_minutes (update time; start-up and saves come on top, and the
 # update that crosses it still ends). Further arguments are Hydra overrides and win over
