@@ -1,13 +1,17 @@
 """Two training curves side by side: how many leading updates agree in every field but
 wall time (a seed replayed), the wall-time ratio at the end of that stretch, and one
-field's mean over windows of updates of each curve.
+field's mean over windows of each curve: windows of updates, or of env frames
+(``--frames-bin``) to compare runs of different batch sizes.
 
 Curves are run folders, ``curve.jsonl`` files or checkpoint cards, as
-``python -m maipp_bench.curves`` reads them.
+``python -m maipp_bench.curves`` reads them. ``--key update_s`` is derived: the seconds
+of each update (the step of the cumulative ``wall_s``).
 
 Usage:
     python benchmarks/curve_compare.py docs/cards/ours_2h_intent_seed2.json \
         docs/cards/ours_2h_intent_seed2_lr3e-5.json --key reward_per_decision --window 10
+    python benchmarks/curve_compare.py docs/cards/ours_gpu_h200_seed0.json \
+        docs/cards/ours_2h_intent_seed3_lr3e-5_stages12.jsonl --frames-bin 100000
 """
 
 from __future__ import annotations
@@ -17,12 +21,34 @@ import argparse
 from maipp_bench.curves import read_curve
 
 
+def values(rows: list[dict], key: str) -> list[float]:
+    if key == "update_s":
+        walls = [0.0] + [r["wall_s"] for r in rows]
+        return [b - a for a, b in zip(walls, walls[1:])]
+    return [r[key] for r in rows]
+
+
+def window_means(rows: list[dict], key: str, window: int, frames_bin: int) -> dict[str, float]:
+    """Mean of ``key`` per ``window`` updates, or per ``frames_bin`` env frames if given."""
+    groups: dict[str, list[float]] = {}
+    for i, (row, v) in enumerate(zip(rows, values(rows, key))):
+        if frames_bin:
+            end = ((row["frames"] - 1) // frames_bin + 1) * frames_bin
+            label = f"<={end // 1000}k"
+        else:
+            label = f"{i // window * window + 1}-"
+        groups.setdefault(label, []).append(v)
+    return {label: sum(vs) / len(vs) for label, vs in groups.items()}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("a")
     p.add_argument("b")
     p.add_argument("--key", default="reward_per_decision")
-    p.add_argument("--window", type=int, default=10)
+    p.add_argument("--window", type=int, default=10, help="updates per window")
+    p.add_argument("--frames-bin", type=int, default=0, help="env frames per window "
+                   "(instead of --window)")
     args = p.parse_args()
     a, b = read_curve(args.a), read_curve(args.b)
     same = 0
@@ -37,12 +63,11 @@ def main() -> None:
         print(f"  wall_s at update {a[same - 1]['update']}: {a[same - 1]['wall_s']:.0f} s "
               f"and {b[same - 1]['wall_s']:.0f} s (b / a = "
               f"{b[same - 1]['wall_s'] / a[same - 1]['wall_s']:.3f})")
-    w = args.window
+    unit = f"{args.frames_bin} frames" if args.frames_bin else f"{args.window} updates"
     for name, rows in (("a", a), ("b", b)):
-        means = [sum(r[args.key] for r in rows[i:i + w]) / len(rows[i:i + w])
-                 for i in range(0, len(rows), w)]
-        print(f"{name}: mean {args.key} per {w} updates: "
-              + " ".join(f"{m:.4f}" for m in means))
+        means = window_means(rows, args.key, args.window, args.frames_bin)
+        print(f"{name}: mean {args.key} per {unit}: "
+              + " ".join(f"{label} {m:.4f}" for label, m in means.items()))
 
 
 if __name__ == "__main__":

@@ -131,6 +131,15 @@ def test_training_runs_with_finite_losses_and_checkpoint_round_trip(tiny_checkpo
     assert len(moved) > len(fresh) // 2
 
 
+def assert_same_training(a: Path, b: Path) -> None:
+    """Two checkpoints hold the same weights and the same curve (wall time aside)."""
+    a, b = torch.load(a, weights_only=False), torch.load(b, weights_only=False)
+    for name, tensor in a["core"].items():
+        assert torch.equal(tensor, b["core"][name]), name
+    strip = lambda curve: [{k: v for k, v in r.items() if k != "wall_s"} for r in curve]  # noqa: E731
+    assert strip(a["curve"]) == strip(b["curve"])
+
+
 @pytest.mark.parametrize("intents", [0, 2])
 def test_killed_and_resumed_training_continues_the_same_curve(tmp_path, intents):
     from maipp_bench.train import train
@@ -142,11 +151,7 @@ def test_killed_and_resumed_training_continues_the_same_curve(tmp_path, intents)
     resumed = train(compose_train(*run, "total_updates=3", f"resume={part}"),
                     tmp_path / "elsewhere")
     assert resumed == part  # the run continues in its own folder
-    a, b = torch.load(full, weights_only=False), torch.load(resumed, weights_only=False)
-    for name, tensor in a["core"].items():
-        assert torch.equal(tensor, b["core"][name]), name
-    strip = lambda curve: [{k: v for k, v in r.items() if k != "wall_s"} for r in curve]  # noqa: E731
-    assert strip(a["curve"]) == strip(b["curve"])
+    assert_same_training(full, resumed)
     lines = (part.parent / "curve.jsonl").read_text().splitlines()
     assert len(lines) == 3
 
@@ -166,11 +171,7 @@ def test_resume_alone_continues_the_run_as_it_was_started(tmp_path, capsys):
     cfg = resumed_config(compose_train(*typed), typed)
     assert "n_envs=3 (this command: 8)" in capsys.readouterr().out
     assert (cfg.seed, cfg.n_envs, cfg.algo.intent_rollouts, cfg.env.n_nodes) == (3, 3, 2, 30)
-    a = torch.load(full, weights_only=False)
-    b = torch.load(train(cfg, tmp_path / "elsewhere"), weights_only=False)
-    assert all(torch.equal(t, b["core"][k]) for k, t in a["core"].items())
-    strip = lambda curve: [{k: v for k, v in r.items() if k != "wall_s"} for r in curve]  # noqa: E731
-    assert strip(a["curve"]) == strip(b["curve"])
+    assert_same_training(full, train(cfg, tmp_path / "elsewhere"))
     again = resumed_config(compose_train(*typed, "n_envs=2"), [*typed, "n_envs=2"])
     assert (again.n_envs, again.seed) == (2, 3)
     logs = resumed_config(compose_train(*typed, "logger=tensorboard"),
