@@ -9,7 +9,8 @@
 # 256 envs collect in 8 and 13 s), so a wide batch costs little more per update than a
 # narrow one; learning grows with it. But per env frame 128 envs learned far less than the
 # CPU's 8-16 in the first run (2026-11-26, docs/results.md "The recipe on one lent GPU"):
-# PPO's progress comes from the number of updates, so try a narrow N_ENVS next.
+# PPO's progress comes from the number of updates. So N_ENVS defaults to 16 since then
+# (the CPU recipe's stage 2-3 width; 128 in that first run), chosen from its training curves.
 # Usage: bash benchmarks/train_gpu.sh OUT_DIR [SEED] [MINUTES] [N_ENVS] [OVERRIDE ...]
 # MINUTES is train's max_minutes (update time; start-up and saves come on top, and the
 # update that crosses it still ends). Further arguments are Hydra overrides and win over
@@ -18,7 +19,7 @@ set -euo pipefail
 OUT=${1:?usage: train_gpu.sh OUT_DIR [SEED] [MINUTES] [N_ENVS] [OVERRIDE ...]}
 SEED=${2:-0}
 MINUTES=${3:-6.5}
-N_ENVS=${4:-128}
+N_ENVS=${4:-16}
 [[ $SEED =~ ^[0-9]+$ ]] || { echo "train_gpu.sh: SEED must be an integer, got '$SEED'" >&2; exit 2; }
 [[ $MINUTES =~ ^[0-9]+([.][0-9]+)?$ ]] && [[ ! $MINUTES =~ ^0+([.]0+)?$ ]] \
     || { echo "train_gpu.sh: MINUTES must be a positive number, got '$MINUTES'" >&2; exit 2; }
