@@ -944,8 +944,11 @@ def test_masked_random_policy_drives_wrappers_and_collectors():
 
     cfg = MAIPPConfig(n_nodes=30, k_neighbors=6, budget=1.0)
     env = SerialEnv(2, lambda: MAIPPEnv(cfg, batch_size=[2]))  # copies the spec: no mask
+    # torchrl 0.14 warns for any module policy on an env without "is_init" (a stateless
+    # policy needs no InitTracker); opt out, as train.py does.
     collector = Collector(env, MaskedRandomPolicy(torch.Generator().manual_seed(0)),
-                          frames_per_batch=60, total_frames=120)
+                          frames_per_batch=60, total_frames=120,
+                          auto_register_policy_transforms=False)
     done = 0
     for batch in collector:
         _assert_actions_allowed(batch.reshape(-1))
