@@ -476,6 +476,9 @@ def test_other_algos_train(algo, tmp_path):
     assert np.isfinite(row["loss_objective"]) and np.isfinite(row["loss_critic"])
 
 
+# A KL cap of 1e-9 can stop the update before its first optimizer step; the schedule still
+# advances once per update, which torch flags when no step came before it.
+@pytest.mark.filterwarnings("ignore:Detected call of `lr_scheduler.step\\(\\)`:UserWarning")
 def test_target_kl_ends_an_update_early(tmp_path):
     from maipp_bench.train import train
 
