@@ -2,9 +2,12 @@
 
 The decoder of :class:`~maipp_bench.algos.attention.AttentionPolicyNet` reads the current
 node's and the k neighbours' embeddings; ``encode`` runs the last encoder layer's queries
-and feed-forward on those rows only. This script times, side by side in one run and on the
-same inputs, the network with ``encode`` and with the full encoder followed by a gather
-(what version 1 of the policy computed), for the two shapes that matter:
+and feed-forward on those rows only, through ``attend_rows`` (the layer's attention
+without its sequence-first copies, the same bits). This script times, side by side in one
+run and on the same inputs, the network with the full encoder followed by a gather (what
+version 1 of the policy computed), with ``encode`` calling the layer's own
+``nn.MultiheadAttention`` (until 2026-11-26), and with ``encode`` as it is, for the two
+shapes that matter:
 
 * ``train``: forward + backward of a PPO minibatch (256 decision rows);
 * ``ti``: inference forward of one TI(8, 5) rollout step for 30 deciding agents (240 rows).
@@ -21,6 +24,7 @@ import platform
 import torch
 from bench_timing import seconds_per_call
 
+from maipp_bench.algos import attention
 from maipp_bench.algos.attention import AttentionConfig, AttentionPolicyNet
 
 
@@ -57,15 +61,21 @@ def main() -> None:
 
     print(f"machine: {platform.machine()}, {platform.processor() or 'cpu'}, "
           f"{torch.get_num_threads()} torch thread(s), N = {args.nodes}, k = {args.k}")
-    print("| shape | full encoder (s) | read rows only (s) | speed-up |")
-    print("|---|---:|---:|---:|")
+    print("| shape | full encoder (s) | read rows, layer's attention (s) | read rows, "
+          "row attention (s) | speed-up over full | over layer's attention |")
+    print("|---|---:|---:|---:|---:|---:|")
+    row_attention = attention.attend_rows
     for name, fn in (("train: fwd + bwd, 256 rows", train_step),
                      ("ti: inference fwd, 240 rows", ti_step)):
         net.encode = lambda x, read: full_encode(net, x, read)  # noqa: E731
         full = seconds_per_call(fn, args.repeats)
         net.encode = read_only
+        attention.attend_rows = lambda attn, q, kv: attn(q, kv, kv, need_weights=False)[0]
+        layer = seconds_per_call(fn, args.repeats)
+        attention.attend_rows = row_attention
         fast = seconds_per_call(fn, args.repeats)
-        print(f"| {name} | {full:.3f} | {fast:.3f} | {full / fast:.1f}x |")
+        print(f"| {name} | {full:.3f} | {layer:.3f} | {fast:.3f} | {full / fast:.1f}x | "
+              f"{layer / fast:.2f}x |")
 
 
 if __name__ == "__main__":

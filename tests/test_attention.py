@@ -5,10 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from torch import nn
 
 from maipp_bench.algos.attention import (
     AttentionConfig,
     AttentionPolicyNet,
+    attend_rows,
     feature_columns,
     laplacian_encoding,
 )
@@ -87,3 +89,42 @@ def test_encoder_read_at_decoder_rows_equals_full_encoder(layers, dtype, tol):
     with torch.no_grad():  # the inference fast path of nn.TransformerEncoder as well
         full = net.encoder(x).gather(1, read.unsqueeze(-1).expand(-1, -1, 128))
         torch.testing.assert_close(net.encode(x, read), full, rtol=tol, atol=tol)
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float32, 0.0), (torch.float64, 1e-12)])
+def test_row_attention_is_the_layers_own(dtype, tol):
+    # attend_rows skips nn.MultiheadAttention's sequence-first copies. In float32, what the
+    # network runs in, its outputs must be the layer's very bits, or the committed TI
+    # leaderboard rows would no longer recompute.
+    torch.manual_seed(0)
+    attn = nn.MultiheadAttention(128, 4, batch_first=True).to(dtype)
+    q = torch.randn(6, 9, 128, dtype=dtype)
+    kv = torch.randn(6, 41, 128, dtype=dtype, requires_grad=True)
+    with torch.no_grad():
+        torch.testing.assert_close(attend_rows(attn, q, kv),
+                                   attn(q, kv, kv, need_weights=False)[0], rtol=tol, atol=tol)
+    out, ref = attend_rows(attn, q, kv), attn(q, kv, kv, need_weights=False)[0]
+    torch.testing.assert_close(out, ref, rtol=tol, atol=tol)
+    # Training differentiates through it: the same gradients.
+    g = torch.randn_like(out)
+    wrt = [kv, attn.in_proj_weight, attn.in_proj_bias, attn.out_proj.weight]
+    tol = max(tol, 1e-5)
+    for got, want in zip(torch.autograd.grad(out, wrt, g), torch.autograd.grad(ref, wrt, g)):
+        torch.testing.assert_close(got, want, rtol=tol, atol=tol)
+
+
+def test_a_given_position_embedding_replaces_the_encoding(obs):
+    # TI's rollouts embed the roadmap's encoding once and pass it for every step.
+    env, td = obs
+    torch.manual_seed(0)
+    net = AttentionPolicyNet(AttentionConfig(n_features=4, pe_dim=8))
+    rm = env.episode.roadmap
+    pe = laplacian_encoding(rm.neighbors, rm.neighbor_valid, dim=8).float()
+    o = td["agents", "observation"]
+    args = (o["current_node"][:, 0], o["budget"][:, 0].float(), o["neighbors"][:, 0],
+            torch.ones(3, 8, dtype=torch.bool))
+    x = o["node_features"][:, 0, :, feature_columns("catnipp")].float()
+    with torch.no_grad():
+        want = net(x, pe, *args)
+        got = net(x, None, *args, positions=net.pos(pe))
+    assert all(torch.equal(a, b) for a, b in zip(want[:2] + want[2], got[:2] + got[2]))

@@ -87,6 +87,7 @@ class AttentionPolicyNet(nn.Module):
         neighbors: torch.Tensor,
         mask: torch.Tensor,
         state: tuple[torch.Tensor, torch.Tensor] | None = None,
+        positions: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
         """Logits ``[B, k]`` (masked slots -inf), value ``[B, 1]``, new LSTM state.
 
@@ -98,9 +99,14 @@ class AttentionPolicyNet(nn.Module):
             neighbors: ``[B, k]`` node index of each slot.
             mask: ``[B, k]`` bool feasibility mask (at least one True per row).
             state: LSTM ``(h, c)`` of the agent's trajectory so far, ``[B, 128]`` each.
+            positions: ``self.pos(pos_enc)`` ``[B, N, d]``, for a caller that already has
+                it (TI's rollouts keep one roadmap for all their steps); ``pos_enc`` is
+                then not read.
         """
         read = torch.cat([current.unsqueeze(-1), neighbors], -1)  # [B, 1 + k]
-        h = self.encode(self.embed(features) + self.pos(pos_enc), read)  # [B, 1 + k, d]
+        if positions is None:
+            positions = self.pos(pos_enc)
+        h = self.encode(self.embed(features) + positions, read)  # [B, 1 + k, d]
         cur, nbr = h[:, 0], h[:, 1:]
         thr = torch.full_like(budget, self.threshold)
         cur = self.current(torch.cat([cur, budget, thr], -1))
@@ -128,5 +134,27 @@ class AttentionPolicyNet(nn.Module):
         rows = read.unsqueeze(-1).expand(-1, -1, x.shape[-1])
         kv = last.norm1(x)
         y = x.gather(1, rows)
-        y = y + last.self_attn(kv.gather(1, rows), kv, kv, need_weights=False)[0]
+        y = y + attend_rows(last.self_attn, kv.gather(1, rows), kv)
         return y + last.linear2(last.activation(last.linear1(last.norm2(y))))
+
+
+def attend_rows(attn: nn.MultiheadAttention, query: torch.Tensor,
+                kv: torch.Tensor) -> torch.Tensor:
+    """``attn(query, kv, kv)[0]`` for a batch-first, bias-carrying ``attn``, without its
+    sequence-first layout: the same bits (tested) with no copy of the ``[B, N, 2d]`` key
+    and value projections, which cost a third of a rollout step's network pass.
+
+    Args:
+        attn: the layer whose weights are used (``batch_first=True``, in-projection bias).
+        query: ``[B, R, d]`` rows that attend.
+        kv: ``[B, N, d]`` rows attended over (keys and values are the same tensor).
+    """
+    b, r, d = query.shape
+    n, heads = kv.shape[1], attn.num_heads
+    w, bias = attn.in_proj_weight, attn.in_proj_bias
+    q = nn.functional.linear(query, w[:d], bias[:d]).view(b, r, heads, d // heads)
+    # nn.MultiheadAttention projects keys and values with one matmul, then adds the bias.
+    k_v = torch.matmul(kv, w[d:].t()).add_(bias[d:])
+    k, v = k_v.view(b, n, 2, heads, d // heads).permute(2, 0, 3, 1, 4).unbind(0)
+    out = nn.functional.scaled_dot_product_attention(q.transpose(1, 2), k, v)
+    return attn.out_proj(out.transpose(1, 2).reshape(b, r, d))

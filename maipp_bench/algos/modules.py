@@ -52,11 +52,14 @@ class AttentionCore(nn.Module):
         return self.net.cfg.embed_dim
 
     def forward(self, node_features, node_encoding, current_node, budget, neighbors,
-                action_mask, hidden):
+                action_mask, hidden, positions=None):
+        """The network on decision rows; ``positions``: see :class:`AttentionPolicyNet`
+        (given, ``node_encoding`` may be None)."""
         x = node_features.index_select(-1, self.columns).float()
         h, c = hidden.float().unbind(-2)
-        logits, value, (h, c) = self.net(x, node_encoding.float(), current_node,
-                                         budget.float(), neighbors, action_mask, (h, c))
+        enc = None if positions is not None else node_encoding.float()
+        logits, value, (h, c) = self.net(x, enc, current_node, budget.float(), neighbors,
+                                         action_mask, (h, c), positions)
         return logits, value, torch.stack([h, c], -2)
 
 

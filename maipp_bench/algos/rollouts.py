@@ -139,7 +139,12 @@ def fantasy_rollouts(core: AttentionCore, env: MAIPPEnv, rows: TensorDictBase,
     # Each agent's belief copied once (used slots only), then once per rollout.
     belief = st.belief.gathered((e_idx, g_idx), j * per_edge, torch.float32, repeats=a)
     query = rep(st.query[e_idx].float())
-    feats, enc = rep(rows.get("node_features")).clone(), rep(rows.get("node_encoding"))
+    # Float32 inputs, as the network reads them, converted once; the roadmap, and so its
+    # position embedding, is the same at every step. The risk column is still summed in
+    # the env's dtype, as the env does, and rounded when written.
+    obs_dtype = rows.get("node_features").dtype
+    feats = rep(rows.get("node_features").float())
+    positions = rep(core.net.pos(rows.get("node_encoding").float()))
     cur, since = rep(rows.get("current_node")), st.since_sample[er, ar]
     pool = st.team_budget[er]
     left = pool - st.budget_used[er]
@@ -152,11 +157,11 @@ def fantasy_rollouts(core: AttentionCore, env: MAIPPEnv, rows: TensorDictBase,
     visited, visited_ok = [], []
     for step in range(j):
         if step > 0:  # the policy's input after the fantasy measurements so far
-            sd = belief.sigma2[:, g2:].clamp_min(0).sqrt().to(feats.dtype)
-            feats[..., 2] = belief.mu[:, g2:, 0].to(feats.dtype)
+            sd = belief.sigma2[:, g2:].clamp_min(0).sqrt()
+            feats[..., 2] = belief.mu[:, g2:, 0]
             feats[..., 3] = sd
             if cfg.risk_enabled:
-                feats[..., 4] = risk_mean.to(feats.dtype) + cfg.risk_beta * sd
+                feats[..., 4] = risk_mean.to(obs_dtype) + cfg.risk_beta * sd.to(obs_dtype)
             nbr = rm.neighbors.gather(1, cur.view(-1, 1, 1).expand(-1, 1, k)).squeeze(1)
             nbr_len = rm.neighbor_dist.gather(1, cur.view(-1, 1, 1).expand(-1, 1, k))
             nbr_len = nbr_len.squeeze(1)
@@ -170,8 +175,8 @@ def fantasy_rollouts(core: AttentionCore, env: MAIPPEnv, rows: TensorDictBase,
             # Rollouts of one agent that sampled the same moves so far hold the same state,
             # so the network runs once per distinct path (a peaked policy repeats itself).
             keep, back = (distinct_rows if _merge_paths else every_row)(path)
-            step_logits, _, h = core(feats[keep], enc[keep], cur[keep], budget[keep],
-                                     nbr[keep], mask[keep], h[keep])
+            step_logits, _, h = core(feats[keep], None, cur[keep], budget[keep],
+                                     nbr[keep], mask[keep], h[keep], positions[keep])
             step_logits, h = step_logits[back], h[back]
         choice = (step_logits + gumbel[:, step]).argmax(-1)
         path = torch.cat([path, choice.unsqueeze(-1)], 1)
