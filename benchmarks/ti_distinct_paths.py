@@ -51,34 +51,59 @@ def play(spec, cfg, instances: list[int], trial: int, distinct: bool) -> dict:
     return {"wall": wall, "rows": rows[0], "trace": [r["trace"] for r in out]}
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def ti_parser(description: str) -> argparse.ArgumentParser:
+    """The options of the scripts that replay protocol episodes of a learned TI method."""
+    p = argparse.ArgumentParser(description=description)
     p.add_argument("--suite", default="risk_aware")
     p.add_argument("--method", default="ours_ti")
     p.add_argument("--budgets", type=float, nargs="+", default=[2.0, 5.0])
     p.add_argument("--instances", type=int, default=30)
-    args = p.parse_args()
-    keep_freed_memory()  # as the eval CLI does
-    torch.set_num_threads(1)
-    suite = load_protocol().suite(args.suite)
-    board = ROOT / "leaderboards" / f"{args.suite}.json"
-    spots = {(r["method"], r["setting"]): r["spot_check"] for r in
-             json.loads(board.read_text())["rows"]} if board.exists() else {}
-    spec = algos.get_method(args.method)
-    instances, trial = list(suite.instance_seeds[:args.instances]), suite.trial_seeds[0]
-    print(f"{platform.machine()}, torch {torch.__version__}, 1 thread; {args.suite} "
-          f"{args.method}, {len(instances)} episodes per setting (trial {trial})")
-    for setting in suite.settings:
-        if setting.as_dict().get("budget") not in args.budgets:
-            continue
-        cfg = suite.env_config(setting)
-        every = play(spec, cfg, instances, trial, distinct=False)
-        once = play(spec, cfg, instances, trial, distinct=True)
+    return p
+
+
+class ProtocolEpisodes:
+    """The suite's first ``args.instances`` instances and first trial for ``args.method``,
+    one thread and the eval CLI's allocator setting, with the committed board's spot checks
+    to compare replays against."""
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        keep_freed_memory()  # as the eval CLI does
+        torch.set_num_threads(1)
+        self.suite = load_protocol().suite(args.suite)
+        board = ROOT / "leaderboards" / f"{args.suite}.json"
+        self.spots = {(r["method"], r["setting"]): r["spot_check"] for r in
+                      json.loads(board.read_text())["rows"]} if board.exists() else {}
+        self.method, self.spec = args.method, algos.get_method(args.method)
+        self.instances = list(self.suite.instance_seeds[:args.instances])
+        self.trial = self.suite.trial_seeds[0]
+        self.settings = [s for s in self.suite.settings
+                         if s.as_dict().get("budget") in args.budgets]
+        print(f"{platform.machine()}, torch {torch.__version__}, 1 thread; {args.suite} "
+              f"{args.method}, {len(self.instances)} episodes per setting (trial "
+              f"{self.trial})")
+
+    def play(self, setting, distinct: bool = True) -> dict:
+        return play(self.spec, self.suite.env_config(setting), self.instances, self.trial,
+                    distinct)
+
+    def same_as_board(self, setting, trace: list[float]) -> str:
+        """", board's spot check identical" (or DIFFERENT) when the board holds these
+        episodes' spot check, else ""."""
+        spot = self.spots.get((self.method, setting.key))
+        if not (spot and spot["trial"] == self.trial and spot["instances"] == self.instances):
+            return ""
+        return ", board's spot check " + ("identical" if trace == spot["trace"]
+                                          else "DIFFERENT")
+
+
+def main() -> None:
+    args = ti_parser(__doc__.splitlines()[0]).parse_args()
+    episodes = ProtocolEpisodes(args)
+    for setting in episodes.settings:
+        every = episodes.play(setting, distinct=False)
+        once = episodes.play(setting, distinct=True)
         same = "identical" if once["trace"] == every["trace"] else "DIFFERENT"
-        spot = spots.get((args.method, setting.key))
-        if spot and spot["trial"] == trial and spot["instances"] == instances:
-            same += ", board's spot check " + (
-                "identical" if once["trace"] == spot["trace"] else "DIFFERENT")
+        same += episodes.same_as_board(setting, once["trace"])
         print(f"  {setting.key}: every rollout {every['wall']:6.1f} s, {every['rows']:8d} "
               f"rows | distinct paths {once['wall']:6.1f} s, {once['rows']:8d} rows | "
               f"{every['wall'] / once['wall']:.2f}x time, {every['rows'] / once['rows']:.2f}x "
