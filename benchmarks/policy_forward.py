@@ -71,8 +71,10 @@ def main() -> None:
         full = seconds_per_call(fn, args.repeats)
         net.encode = read_only
         attention.attend_rows = lambda attn, q, kv: attn(q, kv, kv, need_weights=False)[0]
-        layer = seconds_per_call(fn, args.repeats)
-        attention.attend_rows = row_attention
+        try:
+            layer = seconds_per_call(fn, args.repeats)
+        finally:
+            attention.attend_rows = row_attention
         fast = seconds_per_call(fn, args.repeats)
         print(f"| {name} | {full:.3f} | {layer:.3f} | {fast:.3f} | {full / fast:.1f}x | "
               f"{layer / fast:.2f}x |")

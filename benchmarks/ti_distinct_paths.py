@@ -29,7 +29,7 @@ from maipp_bench import algos
 from maipp_bench.algos import rollouts
 from maipp_bench.algos.modules import AttentionCore
 from maipp_bench.allocator import keep_freed_memory
-from maipp_bench.protocol.protocol import load_protocol
+from maipp_bench.protocol.protocol import Setting, load_protocol
 from maipp_bench.protocol.runner import run_chunk
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -82,11 +82,12 @@ class ProtocolEpisodes:
               f"{args.method}, {len(self.instances)} episodes per setting (trial "
               f"{self.trial})")
 
-    def play(self, setting, distinct: bool = True) -> dict:
+    def play(self, setting: Setting, distinct: bool = True) -> dict:
+        """One replay of the episodes at ``setting`` (see :func:`play`)."""
         return play(self.spec, self.suite.env_config(setting), self.instances, self.trial,
                     distinct)
 
-    def same_as_board(self, setting, trace: list[float]) -> str:
+    def same_as_board(self, setting: Setting, trace: list[float]) -> str:
         """", board's spot check identical" (or DIFFERENT) when the board holds these
         episodes' spot check, else ""."""
         spot = self.spots.get((self.method, setting.key))

@@ -113,6 +113,15 @@ def test_row_attention_is_the_layers_own(dtype, tol):
         torch.testing.assert_close(got, want, rtol=tol, atol=tol)
 
 
+@pytest.mark.parametrize("layer", [dict(batch_first=False), dict(bias=False),
+                                   dict(add_bias_kv=True), dict(add_zero_attn=True),
+                                   dict(kdim=64, vdim=64), dict(dropout=0.1)])
+def test_row_attention_refuses_layers_it_does_not_compute(layer):
+    attn = nn.MultiheadAttention(128, 4, **{"batch_first": True, **layer})
+    with pytest.raises(ValueError, match="attend_rows computes"):
+        attend_rows(attn, torch.randn(2, 3, 128), torch.randn(2, 5, 128))
+
+
 def test_a_given_position_embedding_replaces_the_encoding(obs):
     # TI's rollouts embed the roadmap's encoding once and pass it for every step.
     env, td = obs

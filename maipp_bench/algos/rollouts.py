@@ -143,8 +143,9 @@ def fantasy_rollouts(core: AttentionCore, env: MAIPPEnv, rows: TensorDictBase,
     # position embedding, is the same at every step. The risk column is still summed in
     # the env's dtype, as the env does, and rounded when written.
     obs_dtype = rows.get("node_features").dtype
-    feats = rep(rows.get("node_features").float())
-    positions = rep(core.net.pos(rows.get("node_encoding").float()))
+    feats = rep(rows.get("node_features").float())  # a copy (repeat_interleave): written below
+    positions = core.net.pos(rows.get("node_encoding").float())  # [B, N, d]: rollout row
+    # b * a + r reads positions[b]
     cur, since = rep(rows.get("current_node")), st.since_sample[er, ar]
     pool = st.team_budget[er]
     left = pool - st.budget_used[er]
@@ -176,7 +177,7 @@ def fantasy_rollouts(core: AttentionCore, env: MAIPPEnv, rows: TensorDictBase,
             # so the network runs once per distinct path (a peaked policy repeats itself).
             keep, back = (distinct_rows if _merge_paths else every_row)(path)
             step_logits, _, h = core(feats[keep], None, cur[keep], budget[keep],
-                                     nbr[keep], mask[keep], h[keep], positions[keep])
+                                     nbr[keep], mask[keep], h[keep], positions[keep // a])
             step_logits, h = step_logits[back], h[back]
         choice = (step_logits + gumbel[:, step]).argmax(-1)
         path = torch.cat([path, choice.unsqueeze(-1)], 1)
