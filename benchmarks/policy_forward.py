@@ -20,12 +20,21 @@ from __future__ import annotations
 
 import argparse
 import platform
+from unittest import mock
 
 import torch
 from bench_timing import seconds_per_call
+from torch import nn
 
 from maipp_bench.algos import attention
 from maipp_bench.algos.attention import AttentionConfig, AttentionPolicyNet
+
+
+def layer_attention(attn: nn.MultiheadAttention, query: torch.Tensor,
+                    kv: torch.Tensor) -> torch.Tensor:
+    """What ``encode`` called before ``attend_rows``: the layer's own module
+    (sequence-first inside); patched in for ``attention.attend_rows`` to compare."""
+    return attn(query, kv, kv, need_weights=False)[0]
 
 
 def full_encode(net: AttentionPolicyNet, x: torch.Tensor, read: torch.Tensor) -> torch.Tensor:
@@ -64,17 +73,13 @@ def main() -> None:
     print("| shape | full encoder (s) | read rows, layer's attention (s) | read rows, "
           "row attention (s) | speed-up over full | over layer's attention |")
     print("|---|---:|---:|---:|---:|---:|")
-    row_attention = attention.attend_rows
     for name, fn in (("train: fwd + bwd, 256 rows", train_step),
                      ("ti: inference fwd, 240 rows", ti_step)):
         net.encode = lambda x, read: full_encode(net, x, read)  # noqa: E731
         full = seconds_per_call(fn, args.repeats)
         net.encode = read_only
-        attention.attend_rows = lambda attn, q, kv: attn(q, kv, kv, need_weights=False)[0]
-        try:
+        with mock.patch.object(attention, "attend_rows", layer_attention):
             layer = seconds_per_call(fn, args.repeats)
-        finally:
-            attention.attend_rows = row_attention
         fast = seconds_per_call(fn, args.repeats)
         print(f"| {name} | {full:.3f} | {layer:.3f} | {fast:.3f} | {full / fast:.1f}x | "
               f"{layer / fast:.2f}x |")

@@ -17,17 +17,10 @@ from __future__ import annotations
 
 from unittest import mock
 
-import torch
+from policy_forward import layer_attention
 from ti_distinct_paths import ProtocolEpisodes, ti_parser
-from torch import nn
 
 from maipp_bench.algos import attention
-
-
-def layer_attention(attn: nn.MultiheadAttention, query: torch.Tensor,
-                    kv: torch.Tensor) -> torch.Tensor:
-    """What ``encode`` called before: the layer's own module (sequence-first inside)."""
-    return attn(query, kv, kv, need_weights=False)[0]
 
 
 def main() -> None:
