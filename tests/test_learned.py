@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import copy
 import json
+import os
+import shutil
 import subprocess
 import sys
 import warnings
@@ -371,6 +374,47 @@ def test_training_scripts_reject_bad_arguments_before_training(script, args, mes
     assert proc.returncode == 2
     assert message in proc.stderr
     assert not out.exists()
+
+
+def test_train_2h_rejects_a_bad_select_before_training(tmp_path):
+    out = tmp_path / "run"
+    proc = subprocess.run(["bash", str(Path(__file__).parents[1] / "benchmarks" / "train_2h.sh"),
+                           str(out)], capture_output=True, text=True, timeout=60,
+                          env={**os.environ, "SELECT": "yes"})
+    assert proc.returncode == 2
+    assert "SELECT must be 0 or 1" in proc.stderr
+    assert not out.exists()
+
+
+def test_select_snapshot_scores_the_window_and_picks_the_lowest(tiny_checkpoint, tmp_path):
+    """benchmarks/select_snapshot.py (train_2h.sh's SELECT=1): the candidates are the run's
+    end and its snapshots inside the window; the choice is the lowest mean Tr(P_f)."""
+    script = Path(__file__).parents[1] / "benchmarks" / "select_snapshot.py"
+    run = tmp_path / "run"
+    (run / "snapshots").mkdir(parents=True)
+    shutil.copy(tiny_checkpoint, run / "checkpoint.pt")  # update 2
+    payload = torch.load(tiny_checkpoint, weights_only=False)
+    other = copy.deepcopy(payload)  # a different network, so the scores differ
+    with torch.no_grad():
+        for value in other["core"].values():
+            if value.is_floating_point():
+                value.mul_(-1.0)
+    torch.save(other, run / "snapshots" / "update_0001.pt")
+    torch.save(payload, run / "snapshots" / "update_0000.pt")  # outside --window 1
+    out = tmp_path / "select.json"
+    proc = subprocess.run([sys.executable, str(script), "--run", str(run), "--window", "1",
+                           "--episodes", "2", "--workers", "1", "--out", str(out)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(out.read_text())
+    assert [c["update"] for c in result["candidates"]] == [1, 2]
+    best = min(result["candidates"], key=lambda c: c["mean"])
+    assert result["chosen"] == best
+    assert proc.stdout.strip().splitlines()[-1] == best["path"]
+    assert result["candidates"][-1]["minus_end"] == 0.0
+    missing = subprocess.run([sys.executable, str(script), "--run", str(tmp_path / "none")],
+                             capture_output=True, text=True, timeout=120)
+    assert missing.returncode != 0 and "no training checkpoint" in missing.stderr
 
 
 def test_training_curve_plot(tiny_checkpoint, tmp_path):
