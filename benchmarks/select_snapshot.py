@@ -5,8 +5,8 @@ Every candidate (the snapshots of ``--run``'s ``snapshots/`` from update ``last 
 on, and the run's own ``checkpoint.pt``) plays ``--method`` on the same ``--episodes``
 held-out episodes (training's held-out seeds, never the protocol's) at ``--budget``; the
 one with the lowest mean Tr(P_f) is chosen (ties: the later update). Candidates are
-scored in ``--workers`` processes of one thread each. The table and the choice go to
-``--out`` as JSON; the chosen path is the last line of stdout.
+scored in ``--workers`` processes of one thread each. The table goes to stderr and, with
+the choice, to ``--out`` as JSON; stdout is the chosen path alone.
 
 Usage:
     python benchmarks/select_snapshot.py --run outputs/h9/stage2 --window 15 \\
@@ -19,6 +19,7 @@ import argparse
 import json
 import re
 import statistics as st
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
@@ -36,9 +37,9 @@ def candidates(run: Path, window: int) -> list[tuple[int, Path]]:
     last = int(torch.load(final, map_location="cpu", weights_only=False)["update"])
     found = {last: final}
     for snap in sorted((run / "snapshots").glob("update_*.pt")):
-        update = int(re.fullmatch(r"update_(\d+)\.pt", snap.name).group(1))
-        if last - window <= update < last:
-            found[update] = snap
+        match = re.fullmatch(r"update_(\d+)\.pt", snap.name)
+        if match and last - window <= int(match.group(1)) < last:
+            found[int(match.group(1))] = snap
     return sorted(found.items())
 
 
@@ -70,8 +71,8 @@ def main() -> None:
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", type=Path, help="write the scores and the choice here (JSON)")
     args = p.parse_args()
-    if args.window < 0 or args.episodes < 1 or args.workers < 1 or args.budget <= 0:
-        p.error("--window must be >= 0, --episodes and --workers >= 1, --budget > 0")
+    if args.window < 0 or args.episodes < 2 or args.workers < 1 or args.budget <= 0:
+        p.error("--window must be >= 0, --episodes >= 2, --workers >= 1, --budget > 0")
 
     from maipp_bench.algos.registry import get_method
     get_method(args.method)  # an unknown method fails here, before any worker starts
@@ -89,11 +90,11 @@ def main() -> None:
     table = []
     for (update, path), trace in zip(found, traces):
         diffs = [t - r for t, r in zip(trace, ref)]
-        se = st.stdev(diffs) / len(diffs) ** 0.5 if len(diffs) > 1 else float("nan")
+        se = st.stdev(diffs) / len(diffs) ** 0.5
         table.append({"update": update, "path": str(path), "mean": st.mean(trace),
                       "minus_end": st.mean(diffs), "se": se})
         print(f"update {update:4d}: Tr(P_f) {st.mean(trace):7.2f}  minus the end "
-              f"{st.mean(diffs):+6.2f} ± {se:.2f}  ({path})", flush=True)
+              f"{st.mean(diffs):+6.2f} ± {se:.2f}  ({path})", file=sys.stderr, flush=True)
     best = min(table, key=lambda row: (row["mean"], -row["update"]))
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -101,7 +102,7 @@ def main() -> None:
             "method": args.method, "budget": args.budget, "episodes": args.episodes,
             "window": args.window, "seconds": round(seconds, 1), "candidates": table,
             "chosen": best}, indent=2) + "\n")
-    print(f"chosen: update {best['update']} in {seconds:.0f} s")
+    print(f"chosen: update {best['update']} in {seconds:.0f} s", file=sys.stderr)
     print(best["path"])
 
 

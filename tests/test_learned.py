@@ -408,9 +408,10 @@ def test_select_snapshot_scores_the_window_and_picks_the_lowest(tiny_checkpoint,
     assert proc.returncode == 0, proc.stderr
     result = json.loads(out.read_text())
     assert [c["update"] for c in result["candidates"]] == [1, 2]
-    best = min(result["candidates"], key=lambda c: c["mean"])
-    assert result["chosen"] == best
-    assert proc.stdout.strip().splitlines()[-1] == best["path"]
+    first, end = result["candidates"]
+    assert first["mean"] != end["mean"]  # the choice below follows the scores
+    assert result["chosen"] == min(first, end, key=lambda c: c["mean"])
+    assert proc.stdout.strip() == result["chosen"]["path"]  # stdout is the path alone
     assert result["candidates"][-1]["minus_end"] == 0.0
     missing = subprocess.run([sys.executable, str(script), "--run", str(tmp_path / "none")],
                              capture_output=True, text=True, timeout=120)
