@@ -1,20 +1,26 @@
 #!/usr/bin/env bash
 # The compute goal of docs/results.md: the ours recipe from scratch in at most 2 hours of
 # wall clock on the 2-core box, as ONE run using both cores (threads=2), every choice fixed
-# before it starts (no held-out selection inside the two hours):
+# before it starts (by default no held-out selection inside the two hours; SELECT=1 below):
 #   stage 1  paper defaults with teammates' TI(4, 5) intents in collection;
 #   stage 2  its last update continued with 16 envs, 4 epochs and the KL stop;
-#   stage 3  a fine-tune of stage 2's last update with the paper's TI(8, 5) intents in
+#   stage 3  a fine-tune of stage 2's last update (SELECT=1: of the chosen one) with the
+#            paper's TI(8, 5) intents in
 #            collection, snapshots kept every 5 updates; the policy file is the uniform
 #            average of all of them (export_from=5-<last>).
 # Stage limits are minutes of update time (train's max_minutes); no stage evaluates on
-# held-out episodes; saves and start-up come on top, so the limits sum to less than 120.
+# held-out episodes; saves and start-up (and SELECT=1's choice) come on top, so the limits
+# sum to less than 120.
 # With SELECT=1 (2026-11-26, later), stage 2 keeps a snapshot every 3 updates and stage 3
 # starts from the best of stage 2's last ones (its final update and the snapshots of the
 # SELECT_WINDOW updates before it) on held-out episodes at B = 2 (training's held-out
 # seeds, never the protocol's; benchmarks/select_snapshot.py, both cores), instead of from
 # stage 2's final update; the minutes of that evaluation come out of the two hours, so the
-# default stage minutes are then 38 / 42 / 28.
+# default stage minutes are then 38 / 42 / 28 (108 minutes of updates; the choice, 6
+# candidates x 160 episodes on two cores, takes about 6 minutes). Stage minutes typed by
+# hand, or a wider SELECT_WINDOW / more SELECT_EPISODES, get no such allowance. The
+# exported card's wall_s_with_init counts stage 2 up to the chosen update only: the run's
+# whole wall clock is in OUT_DIR/wall.txt, the choice's own seconds in OUT_DIR/select.json.
 # Usage: [SELECT=1] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
 # LR3 is stage 3's Adam learning rate: 3e-5 by default since 2026-11-26 (1e-4, the paper's,
 # before). Chosen from training curves (1e-4 let stage 3's reward per decision fall) and,
@@ -40,6 +46,9 @@ for m in "$M1" "$M2" "$M3"; do  # minutes may be fractional (a short smoke run)
         || { echo "train_2h.sh: stage minutes must be positive numbers, got '$m'" >&2; exit 2; }
 done
 M12=$(python -c "print($M1 + $M2)")  # stage 2 resumes: its limit counts stage 1's minutes
+HERE=$(dirname "$0")
+S2=()  # stage 2's extra fields
+[[ $SELECT == 1 ]] && S2=(keep_snapshots=true snapshot_every=3)
 TRAIN="python -m maipp_bench.train algo=ours threads=2 progress=false total_updates=100000"
 mkdir -p "$OUT"
 echo "start $(date -u +%FT%TZ)" | tee "$OUT/wall.txt"
@@ -52,16 +61,17 @@ mkdir -p "$OUT/stage2" && cp "$OUT/stage1/checkpoint.pt" "$OUT/stage2/checkpoint
 # seed=0: until 2026-11-26 a resume took untyped fields from the defaults, so every draw's
 # stage 2 reset its worlds from seed 0; typed, so that the documented draws reproduce.
 $TRAIN resume="$OUT/stage2/checkpoint.pt" seed=0 algo.intent_rollouts=4 algo.intent_depth=5 \
-    n_envs=16 algo.epochs=4 algo.target_kl=0.02 max_minutes="$M12" eval_every=0 \
-    $([[ $SELECT == 1 ]] && echo keep_snapshots=true snapshot_every=3)
+    n_envs=16 algo.epochs=4 algo.target_kl=0.02 max_minutes="$M12" eval_every=0 "${S2[@]}"
 echo "stage2 done $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
 
 START="$OUT/stage2/checkpoint.pt"
+NOTE="fixed before the run"
 if [[ $SELECT == 1 ]]; then
-    START=$(python benchmarks/select_snapshot.py --run "$OUT/stage2" --window "$SELECT_WINDOW" \
+    START=$(python "$HERE/select_snapshot.py" --run "$OUT/stage2" --window "$SELECT_WINDOW" \
         --method ours_ti --budget 2 --episodes "$SELECT_EPISODES" --workers 2 \
         --out "$OUT/select.json" | tail -1)
     echo "selected $START $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
+    NOTE="fixed before the run; stage 3 started from $START, chosen on held-out episodes at B = 2 ($OUT/select.json); wall_s_with_init leaves out the updates of stage 2 after it and the minutes of the choice; the whole wall clock of the run is in $OUT/wall.txt"
 fi
 $TRAIN init="$START" seed="$((SEED + 2))" algo.lr="$LR3" \
     algo.intent_rollouts=8 algo.intent_depth=5 n_envs=16 algo.epochs=4 algo.target_kl=0.02 \
@@ -71,5 +81,5 @@ LAST=$(ls "$OUT/stage3/snapshots" | sed -n 's/update_0*\([0-9]*\)\.pt/\1/p' | so
 python -m maipp_bench.train algo=ours resume="$OUT/stage3/checkpoint.pt" total_updates=0 \
     threads=2 progress=false export="$OUT/avg.pt" export_from="5-$LAST" \
     hydra.run.dir="$OUT/export" \
-    "export_note='benchmarks/train_2h.sh: the uniform average of every snapshot of stage 3 (updates 5-$LAST), fixed before the run'"
+    "export_note='benchmarks/train_2h.sh: the uniform average of every snapshot of stage 3 (updates 5-$LAST), $NOTE'"
 echo "end $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
