@@ -45,7 +45,7 @@ import torch
 from maipp_bench.allocator import keep_freed_memory
 
 
-def _mean_se(values: list[float]) -> tuple[float, float]:
+def mean_se(values: list[float]) -> tuple[float, float]:
     """Mean and its standard error (nan for a single value)."""
     se = st.stdev(values) / len(values) ** 0.5 if len(values) > 1 else float("nan")
     return st.mean(values), se
@@ -90,7 +90,7 @@ def heldout(paths: list[str], episodes: int, budgets: list[float], methods: list
                     file.write_text(json.dumps(rows))
             trace = [r["trace"] for r in rows]
             ref = ref or trace
-            diff, se = _mean_se([t - f for t, f in zip(trace, ref)])
+            diff, se = mean_se([t - f for t, f in zip(trace, ref)])
             wins = sum(t < f for t, f in zip(trace, ref))
             print(f"  {path} (update {payload.get('update')}), {spec.name}: "
                   f"Tr(P_f) {st.mean(trace):7.2f}  rmse {st.mean(r['rmse'] for r in rows):.3f}"
@@ -123,7 +123,7 @@ def paired(subset: Path, suite: str, method: str, results: Path, against: list[s
         print(f"{setting}: {len(keys)} episodes")
         for name, rows in runs.items():
             d = {k: rows[k]["trace"] - ref[k]["trace"] for k in keys}
-            diff, se = _mean_se(list(d.values()))
+            diff, se = mean_se(list(d.values()))
             # Where the mean difference comes from: episodes with and without a trap.
             split = [[v for k, v in d.items() if (rows[k]["traps"] > 0) == trapped]
                      for trapped in (False, True)]

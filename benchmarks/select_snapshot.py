@@ -1,5 +1,5 @@
 """Choose a training snapshot on held-out episodes: the selection step of
-``benchmarks/train_2h.sh`` with ``SELECT=1`` (docs/results.md, "Choosing stage 3's start").
+``benchmarks/train_2h.sh`` with ``SELECT=1`` (docs/results.md, "An eighth run").
 
 Every candidate (the snapshots of ``--run``'s ``snapshots/`` from update ``last - window``
 on, and the run's own ``checkpoint.pt``) plays ``--method`` on the same ``--episodes``
@@ -26,6 +26,7 @@ from multiprocessing import get_context
 from pathlib import Path
 
 import torch
+from paired_subset import mean_se
 
 
 def candidates(run: Path, window: int) -> list[tuple[int, Path]]:
@@ -89,12 +90,11 @@ def main() -> None:
     ref = traces[-1]  # the run's own end: what train_2h.sh without SELECT continues from
     table = []
     for (update, path), trace in zip(found, traces):
-        diffs = [t - r for t, r in zip(trace, ref)]
-        se = st.stdev(diffs) / len(diffs) ** 0.5
+        diff, se = mean_se([t - r for t, r in zip(trace, ref)])
         table.append({"update": update, "path": str(path), "mean": st.mean(trace),
-                      "minus_end": st.mean(diffs), "se": se})
+                      "minus_end": diff, "se": se})
         print(f"update {update:4d}: Tr(P_f) {st.mean(trace):7.2f}  minus the end "
-              f"{st.mean(diffs):+6.2f} ± {se:.2f}  ({path})", file=sys.stderr, flush=True)
+              f"{diff:+6.2f} ± {se:.2f}  ({path})", file=sys.stderr, flush=True)
     best = min(table, key=lambda row: (row["mean"], -row["update"]))
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -5,9 +5,8 @@
 #   stage 1  paper defaults with teammates' TI(4, 5) intents in collection;
 #   stage 2  its last update continued with 16 envs, 4 epochs and the KL stop;
 #   stage 3  a fine-tune of stage 2's last update (SELECT=1: of the chosen one) with the
-#            paper's TI(8, 5) intents in
-#            collection, snapshots kept every 5 updates; the policy file is the uniform
-#            average of all of them (export_from=5-<last>).
+#            paper's TI(8, 5) intents in collection, snapshots kept every 5 updates; the
+#            policy file is the uniform average of all of them (export_from=5-<last>).
 # Stage limits are minutes of update time (train's max_minutes); no stage evaluates on
 # held-out episodes; saves and start-up (and SELECT=1's choice) come on top, so the limits
 # sum to less than 120.
@@ -17,10 +16,11 @@
 # seeds, never the protocol's; benchmarks/select_snapshot.py, both cores), instead of from
 # stage 2's final update; the minutes of that evaluation come out of the two hours, so the
 # default stage minutes are then 38 / 42 / 28 (108 minutes of updates; the choice, 6
-# candidates x 160 episodes on two cores, takes about 6 minutes). Stage minutes typed by
-# hand, or a wider SELECT_WINDOW / more SELECT_EPISODES, get no such allowance. The
-# exported card's wall_s_with_init counts stage 2 up to the chosen update only: the run's
-# whole wall clock is in OUT_DIR/wall.txt, the choice's own seconds in OUT_DIR/select.json.
+# candidates x 160 episodes on two cores, took 7 minutes in the eighth draw). Stage
+# minutes typed by hand, or a wider SELECT_WINDOW / more SELECT_EPISODES, get no such
+# allowance. The exported card's wall_s_with_init counts stage 2 up to the chosen update
+# only: the run's whole wall clock is in OUT_DIR/wall.txt, the choice's own seconds in
+# OUT_DIR/select.json.
 # Usage: [SELECT=1] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
 # LR3 is stage 3's Adam learning rate: 3e-5 by default since 2026-11-26 (1e-4, the paper's,
 # before). Chosen from training curves (1e-4 let stage 3's reward per decision fall) and,
