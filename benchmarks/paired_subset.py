@@ -30,6 +30,8 @@ Usage:
         --reference catnipp_ti=maipp_bench/checkpoints/catnipp.pt   # against a baseline
     python benchmarks/paired_subset.py --subset out/subset-60 --method ours_ti \\
         --against ours_ti catnipp_ti sga_rrt_0.3_0.4 oracle
+    python benchmarks/paired_subset.py --subset outputs/h10_results --method ours_ti \\
+        --against catnipp_ti --exclude 86171:155871   # without one episode
 """
 
 from __future__ import annotations
@@ -105,8 +107,19 @@ def _rows(path: Path, sha: str = "") -> dict[tuple, dict]:
             if r.get("checkpoint_sha256", "").startswith(sha)}
 
 
+def _episode(text: str) -> tuple[int, int]:
+    """``--exclude``'s INSTANCE:TRIAL as a pair of integers."""
+    instance, sep, trial = text.partition(":")
+    if not (sep and instance.isdigit() and trial.isdigit()):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected INSTANCE:TRIAL integers")
+    return int(instance), int(trial)
+
+
 def paired(subset: Path, suite: str, method: str, results: Path, against: list[str],
-           sha: str = "") -> None:
+           sha: str = "", exclude: tuple[tuple[int, int], ...] = ()) -> None:
+    """Print, per setting, each run's mean on ``subset``'s episodes and its paired
+    difference to the first of ``against``; ``exclude`` (instance, trial) pairs are left
+    out of every setting, their own rows printed apart."""
     runs = {f"{method} ({subset.name})": _rows(subset / suite / f"{method}.jsonl", sha)}
     runs |= {f"{m} (full)": _rows(results / suite / f"{m}.jsonl") for m in against}
     ref = runs[f"{against[0]} (full)"]
@@ -119,11 +132,16 @@ def paired(subset: Path, suite: str, method: str, results: Path, against: list[s
                          + "; ".join(f"{n}: {sorted(v)}" for n, v in settings.items())
                          + " (pair with one --against method at a time)")
     for setting in common:
-        keys = [k for k in mine if k[0] == setting]
+        keys = [k for k in mine if k[0] == setting and k[1:] not in exclude]
         print(f"{setting}: {len(keys)} episodes")
         for name, rows in runs.items():
+            for k in (k for k in mine if k[0] == setting and k[1:] in exclude):
+                r = rows[k]
+                print(f"  {name:32s} left out: instance {k[1]} trial {k[2]}: Tr(P_f) "
+                      f"{r['trace']:.1f}  traps {r['traps']}  distance {r['distance']:.2f}")
             d = {k: rows[k]["trace"] - ref[k]["trace"] for k in keys}
             diff, se = mean_se(list(d.values()))
+            worst = max(keys, key=lambda k: rows[k]["trace"])  # what a large std comes from
             # Where the mean difference comes from: episodes with and without a trap.
             split = [[v for k, v in d.items() if (rows[k]["traps"] > 0) == trapped]
                      for trapped in (False, True)]
@@ -133,7 +151,8 @@ def paired(subset: Path, suite: str, method: str, results: Path, against: list[s
                   f" (median {st.median(rows[k]['trace'] for k in keys):.1f})"
                   f"  traps {st.mean(rows[k]['traps'] for k in keys):.2f}"
                   f"  minus {against[0]} {diff:+6.2f} ± {se:.2f}"
-                  f"  wins {sum(v < 0 for v in d.values())}  {parts}")
+                  f"  wins {sum(v < 0 for v in d.values())}  {parts}"
+                  f"  worst {rows[worst]['trace']:.1f} (instance {worst[1]} trial {worst[2]})")
 
 
 def main() -> None:
@@ -162,6 +181,9 @@ def main() -> None:
                         "starts so (e.g. --subset results and a candidate's rows)")
     p.add_argument("--results", type=Path, default=Path("results"))
     p.add_argument("--against", nargs="+", default=[])
+    p.add_argument("--exclude", nargs="+", default=[], type=_episode, metavar="INSTANCE:TRIAL",
+                   help="--subset: leave these episodes out of every setting (their rows "
+                        "are printed apart)")
     args = p.parse_args()
     keep_freed_memory()  # as the CLIs do (maipp_bench/allocator.py)
     torch.set_num_threads(1)
@@ -178,7 +200,7 @@ def main() -> None:
         if not (args.method and args.against):
             p.error("--subset needs --method and --against")
         paired(args.subset, args.suite, args.method, args.results, args.against,
-               args.method_sha)
+               args.method_sha, tuple(args.exclude))
 
 
 if __name__ == "__main__":

@@ -418,6 +418,32 @@ def test_select_snapshot_scores_the_window_and_picks_the_lowest(tiny_checkpoint,
     assert missing.returncode != 0 and "no training checkpoint" in missing.stderr
 
 
+def test_paired_subset_leaves_out_excluded_episodes_and_names_the_worst(tmp_path):
+    """benchmarks/paired_subset.py --exclude: the left-out episode's rows are printed apart
+    and the paired mean is over the rest; a bad INSTANCE:TRIAL is refused."""
+    script = Path(__file__).parents[1] / "benchmarks" / "paired_subset.py"
+    traces = {"mine": [10.0, 20.0, 700.0], "base": [12.0, 19.0, 30.0]}
+    for name, folder in (("mine", "sub"), ("base", "res")):
+        (tmp_path / folder / "s").mkdir(parents=True)
+        rows = [{"setting": "budget=2.0", "instance": i, "trial": 5, "trace": t,
+                 "traps": int(t > 100), "distance": 1.0} for i, t in enumerate(traces[name])]
+        (tmp_path / folder / "s" / "m.jsonl").write_text(
+            "".join(json.dumps(r) + "\n" for r in rows))
+    args = [sys.executable, str(script), "--subset", str(tmp_path / "sub"), "--suite", "s",
+            "--method", "m", "--results", str(tmp_path / "res"), "--against", "m"]
+    whole = subprocess.run(args, capture_output=True, text=True, timeout=120)
+    assert whole.returncode == 0, whole.stderr
+    assert "3 episodes" in whole.stdout and "worst 700.0 (instance 2 trial 5)" in whole.stdout
+    kept = subprocess.run(args + ["--exclude", "2:5"], capture_output=True, text=True,
+                          timeout=120)
+    assert kept.returncode == 0, kept.stderr
+    assert "2 episodes" in kept.stdout
+    assert "left out: instance 2 trial 5: Tr(P_f) 700.0  traps 1" in kept.stdout
+    assert "minus m  -0.50 ± 1.50" in kept.stdout  # mean of (-2, +1) and its standard error
+    bad = subprocess.run(args + ["--exclude", "2"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "expected INSTANCE:TRIAL" in bad.stderr
+
+
 def test_training_curve_plot(tiny_checkpoint, tmp_path):
     from maipp_bench.curves import main, read_curve
 
