@@ -1,11 +1,13 @@
 """Training curves: ``python -m maipp_bench.curves RUN_OR_CARD... --out curves.png``.
 
 Reads a run folder's ``curve.jsonl`` or a shipped checkpoint's JSON card and plots, against
-env frames, the final Tr(P) of the training episodes, the held-out evaluation's Tr(P)
+env frames (``--x updates`` or ``--x minutes`` of update time instead: runs of different
+batch widths or machines compare per update or per minute), the final Tr(P) of the training
+episodes, the held-out evaluation's Tr(P)
 (greedy decoding unless the run's ``eval_method`` says otherwise) and the mean reward per
 decision. A card's selected update (the weights it exports) is marked by a dashed line.
-A fine-tune's card (one with ``init``) is drawn from the frames its starting network had
-already been trained on, so it continues that network's curve.
+A fine-tune's card (one with ``init``) is drawn from the frames (updates, minutes) its
+starting network had already been trained on, so it continues that network's curve.
 """
 
 from __future__ import annotations
@@ -40,6 +42,33 @@ def read_curve(source: str | Path) -> list[dict[str, Any]]:
     return [r | {"frames": r["frames"] + offset} for r in card["curve"]]
 
 
+# --x choices: (curve field, axis label, divisor).
+X_AXES = {"frames": ("frames", "env frames", 1),
+          "updates": ("update", "updates", 1),
+          "minutes": ("wall_s", "minutes of update time", 60)}
+
+
+def init_offsets(source: str | Path) -> dict[str, float]:
+    """Where a fine-tune card's curve starts on the ``update`` and ``wall_s`` axes: its
+    starting network's updates and seconds (frames are offset by :func:`read_curve`);
+    empty for a run folder or a card trained from scratch."""
+    path = Path(source)
+    if path.is_dir() or path.suffix != ".json":
+        return {}
+    card = json.loads(path.read_text())
+    init = card.get("init") or {}
+    if not init:
+        return {}
+    wall = init.get("wall_s", card.get("wall_s_with_init", 0) - card.get("wall_s", 0))
+    return {"update": init.get("update", 0), "wall_s": wall}
+
+
+def x_value(row: dict[str, Any], axis: str, offsets: dict[str, float] | None = None) -> float:
+    """A curve row's position on the ``axis`` of :data:`X_AXES`."""
+    key, _, divisor = X_AXES[axis]
+    return (row[key] + (offsets or {}).get(key, 0)) / divisor
+
+
 def selected_frames(source: str | Path) -> int | None:
     """Env frames at the update a checkpoint card selected, counted as ``read_curve``
     counts them (None for a run folder)."""
@@ -64,10 +93,16 @@ def eval_title(sources: dict[str, list[dict[str, Any]]]) -> str:
 
 
 def figure(sources: dict[str, list[dict[str, Any]]],
-           selected: dict[str, int] | None = None) -> plt.Figure:
-    """Three panels, one line per named curve in the same colour in every panel (a curve
-    may have no points in one, e.g. a run without held-out evaluations), a dashed line at
-    each curve's ``selected`` frames."""
+           selected: dict[str, float] | None = None, x: str = "frames",
+           offsets: dict[str, dict[str, float]] | None = None,
+           xmax: float | None = None) -> plt.Figure:
+    """Three panels against the ``x`` axis of :data:`X_AXES`, one line per named curve in
+    the same colour in every panel (a curve may have no points in one, e.g. a run without
+    held-out evaluations), a dashed line at each curve's ``selected`` position on that
+    axis; ``offsets`` shift a fine-tune's curve (:func:`init_offsets`); ``xmax`` shows
+    the axis from 0 to there (short runs beside a long one)."""
+    if x not in X_AXES:
+        raise ValueError(f"x={x!r}; valid: {', '.join(X_AXES)}")
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.6), constrained_layout=True)
     cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     if len(sources) > len(cycle):  # past the cycle's ten, colours would repeat: tab20's
@@ -78,7 +113,8 @@ def figure(sources: dict[str, list[dict[str, Any]]],
               ("reward_per_decision", "reward per decision")]
     for ax, (key, title) in zip(axes, panels):
         for name, rows in sources.items():
-            pts = [(r["frames"], r[key]) for r in rows if key in r and r[key] == r[key]]
+            pts = [(x_value(r, x, (offsets or {}).get(name)), r[key]) for r in rows
+                   if key in r and r[key] == r[key]]
             if pts:
                 ax.plot(*zip(*pts), marker="." if len(pts) < 40 else None, label=name,
                         color=colors[name])
@@ -86,9 +122,11 @@ def figure(sources: dict[str, list[dict[str, Any]]],
                 ax.axvline(selected[name], color=colors[name], ls="--", lw=1,
                            label=f"{name}: selected update")
         ax.set_title(title)
-        ax.set_xlabel("env frames")
-        # Thousands as "20k": full numbers run into each other on narrow panels.
-        ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x / 1000:g}k" if x else "0"))
+        ax.set_xlabel(X_AXES[x][1])
+        if xmax is not None:  # every axis here starts at 0: a fine-tune's too (offsets)
+            ax.set_xlim(0, xmax)
+        if x == "frames":  # thousands as "20k": full numbers run into each other
+            ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v / 1000:g}k" if v else "0"))
         ax.grid(alpha=0.3)
     # One legend beside the panels (not over them): every curve once, even one that has
     # no points in the first panel.
@@ -101,9 +139,11 @@ def figure(sources: dict[str, list[dict[str, Any]]],
 
 
 def plot_curves(sources: dict[str, list[dict[str, Any]]], out: str | Path,
-                selected: dict[str, int] | None = None) -> Path:
+                selected: dict[str, float] | None = None, x: str = "frames",
+                offsets: dict[str, dict[str, float]] | None = None,
+                xmax: float | None = None) -> Path:
     """:func:`figure`, written to ``out`` (PNG)."""
-    fig = figure(sources, selected)
+    fig = figure(sources, selected, x, offsets, xmax)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=110)
@@ -116,15 +156,22 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("sources", nargs="+", help="run folders or checkpoint cards (NAME=PATH "
                    "to name a line)")
     p.add_argument("--out", required=True)
+    p.add_argument("--x", choices=list(X_AXES), default="frames",
+                   help="the horizontal axis (minutes: of update time, from the curve's wall_s)")
+    p.add_argument("--xmax", type=float, help="cut the horizontal axis at this value")
     args = p.parse_args(argv)
-    curves, selected = {}, {}
+    if args.xmax is not None and args.xmax <= 0:
+        p.error(f"--xmax must be positive, got {args.xmax}")
+    curves, selected, offsets = {}, {}, {}
     for src in args.sources:
         name, sep, path = src.partition("=")
         name, path = (name, path) if sep else (Path(src).stem, src)
         curves[name] = read_curve(path)
+        offsets[name] = init_offsets(path)
         if (frames := selected_frames(path)) is not None:
-            selected[name] = frames
-    print(f"wrote {plot_curves(curves, args.out, selected)}")
+            at = [r for r in curves[name] if r["frames"] == frames]
+            selected[name] = x_value(at[0], args.x, offsets[name])
+    print(f"wrote {plot_curves(curves, args.out, selected, args.x, offsets, args.xmax)}")
 
 
 if __name__ == "__main__":

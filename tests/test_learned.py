@@ -477,6 +477,42 @@ def test_a_fine_tunes_curve_continues_from_its_starting_networks_frames(tmp_path
     assert selected_frames(card) == 5200
 
 
+def test_curves_plot_against_updates_or_minutes_from_a_fine_tunes_start(tmp_path):
+    import matplotlib.pyplot as plt
+
+    from maipp_bench.curves import figure, init_offsets, main, read_curve
+
+    card = tmp_path / "card.json"
+    curve = [{"update": u, "frames": 100 * u, "wall_s": 30.0 * u, "trace_final": 1.0 / u,
+              "reward_per_decision": 0.1} for u in (1, 2, 3)]
+    card.write_text(json.dumps({"curve": curve, "selected_update": 2, "frames": 300,
+                                "wall_s": 90.0, "frames_with_init": 5300,
+                                "init": {"frames": 5000, "update": 40, "wall_s": 1200.0}}))
+    offsets = init_offsets(card)
+    assert offsets == {"update": 40, "wall_s": 1200.0}
+    assert init_offsets(tmp_path) == {}  # a run folder starts at zero
+    rows = read_curve(card)
+    for axis, xs in (("updates", [41, 42, 43]), ("minutes", [20.5, 21.0, 21.5]),
+                     ("frames", [5100, 5200, 5300])):
+        fig = figure({"ft": rows}, selected={"ft": xs[1]}, x=axis, offsets={"ft": offsets})
+        lines = {line.get_label(): line for line in fig.axes[0].get_lines()}
+        label = fig.axes[0].get_xlabel()
+        plt.close(fig)
+        assert list(lines["ft"].get_xdata()) == xs
+        assert list(lines["ft: selected update"].get_xdata()) == [xs[1], xs[1]]
+        assert label == {"updates": "updates", "minutes": "minutes of update time",
+                         "frames": "env frames"}[axis]
+    main([f"ft={card}", "--x", "minutes", "--out", str(tmp_path / "m.png")])
+    assert (tmp_path / "m.png").stat().st_size > 5000
+    fig = figure({"ft": rows}, x="updates", offsets={"ft": offsets}, xmax=42)
+    assert all(ax.get_xlim() == (0, 42) for ax in fig.axes)
+    plt.close(fig)
+    with pytest.raises(SystemExit):
+        main([f"ft={card}", "--xmax", "0", "--out", str(tmp_path / "z.png")])
+    with pytest.raises(ValueError, match="valid: frames, updates, minutes"):
+        figure({"ft": rows}, x="seconds")
+
+
 def test_a_curve_keeps_its_colour_in_every_panel():
     import matplotlib.pyplot as plt
 
