@@ -12,8 +12,13 @@ shapes that matter:
 * ``train``: forward + backward of a PPO minibatch (256 decision rows);
 * ``ti``: inference forward of one TI(8, 5) rollout step for 30 deciding agents (240 rows).
 
+``--bf16`` adds a second table: the network as it is in float32 against the same network
+under CPU autocast to bfloat16 (matrix products in bf16, weights kept in float32: what a
+mixed-precision trainer would run), with the relative error of the logits and values
+against float32 (a lead for training speed, not a setting of the trainer).
+
 Usage:
-    OMP_NUM_THREADS=1 python benchmarks/policy_forward.py [--repeats 5] [--nodes 201]
+    OMP_NUM_THREADS=1 python benchmarks/policy_forward.py [--repeats 5] [--nodes 201] [--bf16]
 """
 
 from __future__ import annotations
@@ -47,6 +52,8 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--nodes", type=int, default=201)
     p.add_argument("--k", type=int, default=20)
+    p.add_argument("--bf16", action="store_true",
+                   help="also time float32 against bfloat16 autocast")
     args = p.parse_args()
     torch.manual_seed(0)
     net = AttentionPolicyNet(AttentionConfig())
@@ -83,7 +90,46 @@ def main() -> None:
         fast = seconds_per_call(fn, args.repeats)
         print(f"| {name} | {full:.3f} | {layer:.3f} | {fast:.3f} | {full / fast:.1f}x | "
               f"{layer / fast:.2f}x |")
+    if args.bf16:
+        bf16_table(net, train_in, ti_in, args.repeats)
 
+
+def relative_error(out: torch.Tensor, ref: torch.Tensor) -> float:
+    """||out - ref|| / ||ref|| over the finite entries of ``ref`` (masked logits are -inf)."""
+    keep = ref.isfinite()
+    return float((out.float()[keep] - ref[keep]).norm() / ref[keep].norm())
+
+
+def bf16_table(net: AttentionPolicyNet, train_in: tuple, ti_in: tuple, repeats: int) -> None:
+    """Float32 against bfloat16 autocast, side by side on the same inputs; the backward
+    pass runs outside autocast, as torch's AMP recipe has it."""
+    def steps(precision: torch.dtype):
+        on = precision == torch.bfloat16
+
+        def train_step():
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=on):
+                logits, value, _ = net(*train_in)
+                loss = logits.float().logsumexp(-1).sum() + value.float().sum()
+            loss.backward()
+
+        def ti_step():
+            with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=on):
+                net(*ti_in)
+
+        return train_step, ti_step
+
+    with torch.no_grad():
+        logits, value, _ = net(*train_in)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            logits16, value16, _ = net(*train_in)
+    print(f"\nbf16 autocast: relative error of the logits {relative_error(logits16, logits):.1e},"
+          f" of the values {relative_error(value16, value):.1e} (256 rows)")
+    print("| shape | float32 (s) | bf16 autocast (s) | speed-up |")
+    print("|---|---:|---:|---:|")
+    names = ("train: fwd + bwd, 256 rows", "ti: inference fwd, 240 rows")
+    for name, f32_fn, b16_fn in zip(names, steps(torch.float32), steps(torch.bfloat16)):
+        f32, b16 = seconds_per_call(f32_fn, repeats), seconds_per_call(b16_fn, repeats)
+        print(f"| {name} | {f32:.3f} | {b16:.3f} | {f32 / b16:.2f}x |")
 
 if __name__ == "__main__":
     main()
