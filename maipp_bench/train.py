@@ -51,7 +51,7 @@ from maipp_bench.algos.checkpoint import (
 )
 from maipp_bench.algos.decisions import decision_batch
 from maipp_bench.algos.learned import LearnedPolicy
-from maipp_bench.algos.modules import HIDDEN_KEY, TeamPolicy, decision_rows
+from maipp_bench.algos.modules import HIDDEN_KEY, TeamPolicy, decision_rows, full_precision
 from maipp_bench.algos.ppo import AlgoConfig, Learner, build_learner
 from maipp_bench.algos.registry import MethodSpec, get_method
 from maipp_bench.algos.rollouts import IntentBroadcast, check_training_intents
@@ -326,7 +326,8 @@ def evaluate(learner: Learner, env_cfg: MAIPPConfig, cfg: Any) -> dict[str, Any]
     out: dict[str, Any] = {}
     per_budget, rows = [], []
     for budget in budgets:
-        chunk = heldout_rows(learner.core, env_cfg, cfg.eval_episodes, budget, spec)
+        with full_precision(learner.core):  # what the saved float32 network plays
+            chunk = heldout_rows(learner.core, env_cfg, cfg.eval_episodes, budget, spec)
         per_budget.append(sum(r["trace"] for r in chunk) / len(chunk))
         rows += chunk
         if len(budgets) > 1:

@@ -134,6 +134,51 @@ def test_training_runs_with_finite_losses_and_checkpoint_round_trip(tiny_checkpo
     assert len(moved) > len(fresh) // 2
 
 
+def test_bf16_precision_autocasts_training_only(tmp_path):
+    """algo.precision=bf16: the networks' products in bfloat16 while training (outputs
+    float32, masks kept, close to float32), but the held-out evaluation, the checkpoint
+    and every later load play float32; a bad precision is a clear error."""
+    from maipp_bench.algos.modules import full_precision
+    from maipp_bench.algos.ppo import build_learner
+    from maipp_bench.train import train
+
+    torch.manual_seed(0)
+    algo = compose_train(*TINY_TRAIN, "algo.precision=bf16").algo
+    learner = build_learner(algo, 4, 0.4)
+    assert learner.core.autocast == torch.bfloat16
+    b, n, k = 64, 20, 6
+    mask = torch.rand(b, k) < 0.5
+    mask[:, 0] = True
+    rows = (torch.rand(b, n, 7, dtype=torch.float64), torch.rand(b, n, 4),
+            torch.randint(0, n, (b,)), torch.rand(b, 1), torch.randint(0, n, (b, k)), mask,
+            torch.zeros(b, 2, 32))
+    with torch.no_grad():
+        logits, value, hidden = learner.core(*rows)
+        with full_precision(learner.core):
+            ref_logits, ref_value, ref_hidden = learner.core(*rows)
+    assert learner.core.autocast == torch.bfloat16  # restored after the block
+    assert logits.dtype == value.dtype == hidden.dtype == torch.float32
+    assert torch.isneginf(logits[~mask]).all() and torch.isfinite(logits[mask]).all()
+    rel = (logits[mask] - ref_logits[mask]).norm() / ref_logits[mask].norm()
+    assert 0 < rel < 5e-2  # bf16 rounding moved the logits, a little
+    assert ((value - ref_value).norm() / ref_value.norm()) < 5e-2
+    float32 = build_learner(compose_train(*TINY_TRAIN).algo, 4, 0.4).core
+    float32.load_state_dict(learner.core.state_dict())
+    with torch.no_grad():
+        assert torch.equal(float32(*rows)[0], ref_logits)  # full precision: float32's bits
+
+    run = [*TINY_TRAIN, "algo.precision=bf16", "total_updates=1", "eval_every=1",
+           "eval_episodes=2", "eval_budget=1.0"]
+    ckpt = train(compose_train(*run), tmp_path / "bf16")
+    state = torch.load(ckpt, weights_only=False)
+    assert state["config"]["algo"]["precision"] == "bf16"
+    for key in ("loss_objective", "loss_critic", "eval/trace"):
+        assert np.isfinite(state["curve"][-1][key]), key
+    assert load_core(ckpt)[0].autocast is None  # evaluation loads play float32
+    with pytest.raises(ValueError, match=r"algo.precision='fp8'; valid: \['bf16', 'float32'\]"):
+        build_learner(compose_train(*TINY_TRAIN, "algo.precision=fp8").algo, 4, 0.4)
+
+
 def assert_same_training(a: Path, b: Path) -> None:
     """Two checkpoints hold the same weights and the same curve (wall time aside)."""
     a, b = torch.load(a, weights_only=False), torch.load(b, weights_only=False)
@@ -345,6 +390,7 @@ def test_missing_checkpoint_and_bad_mode_are_clear_errors(tiny_checkpoint):
     ("algo.lr=fast", "algo.lr"),
     ("env.budget=-1", "MAIPPConfig.budget"),
     ("device=gpu", "device='gpu' is invalid"),
+    ("algo.precision=fp8", "algo.precision='fp8'; valid: ['bf16', 'float32']"),
 ])
 def test_bad_overrides_get_clear_errors(override, message, tmp_path):
     proc = subprocess.run(

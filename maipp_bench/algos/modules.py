@@ -17,6 +17,8 @@ the env) and keep their LSTM state.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager, nullcontext
 from typing import Any
 
 import torch
@@ -33,15 +35,43 @@ CORE_IN_KEYS = ["node_features", "node_encoding", "current_node", "budget", "nei
                 "action_mask", "hidden"]
 
 
+# algo.precision -> the dtype the networks' matrix products run in under autocast while
+# training (None: float32 throughout). Weights, optimiser and evaluation stay float32.
+PRECISIONS: dict[str, torch.dtype | None] = {"float32": None, "bf16": torch.bfloat16}
+
+
+def autocast_to(dtype: torch.dtype | None, device: torch.device) -> Any:
+    """Autocast to ``dtype`` on ``device``'s type, or nothing for None."""
+    return nullcontext() if dtype is None else torch.autocast(device.type, dtype=dtype)
+
+
+@contextmanager
+def full_precision(*modules: nn.Module) -> Iterator[None]:
+    """Run ``modules`` (with an ``autocast`` attribute) in float32 inside the block: a
+    held-out evaluation during mixed-precision training scores what the saved float32
+    network will play."""
+    saved = [m.autocast for m in modules]
+    for m in modules:
+        m.autocast = None
+    try:
+        yield
+    finally:
+        for m, dtype in zip(modules, saved):
+            m.autocast = dtype
+
+
 class AttentionCore(nn.Module):
-    """The paper's network on decision rows: a feature set's columns, float32 inside.
+    """The paper's network on decision rows: a feature set's columns, float32 inside
+    (``autocast``: the matrix products in that dtype, the outputs float32).
 
     Returns masked logits ``[B, k]``, the value ``[B, 1]`` of the same encoder pass and
     the new LSTM state ``[B, 2, d]``.
     """
 
-    def __init__(self, feature_set: str, net: AttentionConfig, threshold: float) -> None:
+    def __init__(self, feature_set: str, net: AttentionConfig, threshold: float,
+                 autocast: torch.dtype | None = None) -> None:
         super().__init__()
+        self.autocast = autocast
         self.feature_set = feature_set
         self.register_buffer("columns", torch.tensor(feature_columns(feature_set)),
                              persistent=False)
@@ -58,17 +88,21 @@ class AttentionCore(nn.Module):
         x = node_features.index_select(-1, self.columns).float()
         h, c = hidden.float().unbind(-2)
         enc = None if positions is not None else node_encoding.float()
-        logits, value, (h, c) = self.net(x, enc, current_node, budget.float(), neighbors,
-                                         action_mask, (h, c), positions)
-        return logits, value, torch.stack([h, c], -2)
+        with autocast_to(self.autocast, x.device):
+            logits, value, (h, c) = self.net(x, enc, current_node, budget.float(), neighbors,
+                                             action_mask, (h, c), positions)
+        # .float() is the identity on float32 outputs: full precision keeps its bits.
+        return logits.float(), value.float(), torch.stack([h, c], -2).float()
 
 
 class StateCritic(nn.Module):
     """MAPPO's centralised critic: the team ``state`` (plus a one-hot of the deciding
     agent's node, so the value is the agent's) through one attention layer, mean-pooled."""
 
-    def __init__(self, state_features: int, net: AttentionConfig) -> None:
+    def __init__(self, state_features: int, net: AttentionConfig,
+                 autocast: torch.dtype | None = None) -> None:
         super().__init__()
+        self.autocast = autocast  # as AttentionCore's
         d = net.embed_dim
         self.embed = nn.Linear(state_features + 1, d)
         self.pos = nn.Linear(net.pe_dim, d)
@@ -80,10 +114,11 @@ class StateCritic(nn.Module):
     def forward(self, state: torch.Tensor, node_encoding: torch.Tensor,
                 current_node: torch.Tensor) -> torch.Tensor:
         here = nn.functional.one_hot(current_node, state.shape[-2]).unsqueeze(-1)
-        h = self.encoder(self.embed(torch.cat([state.float(), here.float()], -1))
-                         + self.pos(node_encoding.float()))
-        mine = h[torch.arange(h.shape[0], device=h.device), current_node]
-        return self.head(torch.cat([h.mean(-2), mine], -1))
+        with autocast_to(self.autocast, state.device):
+            h = self.encoder(self.embed(torch.cat([state.float(), here.float()], -1))
+                             + self.pos(node_encoding.float()))
+            mine = h[torch.arange(h.shape[0], device=h.device), current_node]
+            return self.head(torch.cat([h.mean(-2), mine], -1)).float()
 
 
 def decision_actor(core: AttentionCore) -> ProbabilisticActor:

@@ -24,6 +24,7 @@ from torchrl.objectives import ClipPPOLoss, MAPPOLoss
 from maipp_bench.algos.attention import AttentionConfig
 from maipp_bench.algos.modules import (
     LOG_PROB_KEY,
+    PRECISIONS,
     AttentionCore,
     StateCritic,
     decision_actor,
@@ -72,6 +73,10 @@ class AlgoConfig:
     # network never sees a non-zero intent feature in training). 0: no intents.
     intent_rollouts: int = 0
     intent_depth: int = 5
+    # float32 (paper), or bf16: the networks' matrix products under autocast while
+    # training (collection, intents and the loss); weights, optimiser, checkpoints and
+    # every evaluation stay float32 (docs/training.md, "Precision")
+    precision: str = "float32"
     net: NetConfig = field(default_factory=NetConfig)
 
 
@@ -92,7 +97,7 @@ def _shared(algo: Any, core: AttentionCore) -> TensorDictModule | None:
 
 
 def _state(algo: Any, core: AttentionCore) -> TensorDictModule:
-    return state_value(StateCritic(len(STATE_FEATURES), core.net.cfg))
+    return state_value(StateCritic(len(STATE_FEATURES), core.net.cfg, core.autocast))
 
 
 # critic name -> the critic on decision rows (None: the actor's own value head)
@@ -139,10 +144,12 @@ def build_learner(algo: Any, pe_dim: int, threshold: float,
                   device: str | torch.device = "cpu") -> Learner:
     """Network, actor, critic and loss of an algo config (errors list the valid names), with
     the network on ``device`` before the loss takes its parameters."""
-    for kind, name, table in (("critic", algo.critic, CRITICS), ("loss", algo.loss, LOSSES)):
+    for kind, name, table in (("critic", algo.critic, CRITICS), ("loss", algo.loss, LOSSES),
+                              ("precision", algo.precision, PRECISIONS)):
         if name not in table:
             raise ValueError(f"algo.{kind}={name!r}; valid: {sorted(table)}")
-    core = AttentionCore(algo.feature_set, net_config(algo, pe_dim), threshold).to(device)
+    core = AttentionCore(algo.feature_set, net_config(algo, pe_dim), threshold,
+                         PRECISIONS[algo.precision]).to(device)
     actor = decision_actor(core)
     critic = CRITICS[algo.critic](algo, core)
     if critic is not None:
