@@ -21,7 +21,9 @@
 # allowance. The exported card's wall_s_with_init counts stage 2 up to the chosen update
 # only: the run's whole wall clock is in OUT_DIR/wall.txt, the choice's own seconds in
 # OUT_DIR/select.json.
-# Usage: [SELECT=1] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
+# Usage: [SELECT=1] [OVERRIDES="k=v ..."] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
+# OVERRIDES are Hydra overrides typed after each stage's own fields, so they win (e.g.
+# algo.precision=bf16; the tests' tiny task: env=tiny n_envs=3 ...); none by default.
 # LR3 is stage 3's Adam learning rate: 3e-5 by default since 2026-11-26 (1e-4, the paper's,
 # before). Chosen from training curves (1e-4 let stage 3's reward per decision fall) and,
 # said openly, from the protocol rows of six draws (docs/results.md, "All six draws").
@@ -50,18 +52,20 @@ HERE=$(dirname "$0")
 S2=()  # stage 2's extra fields
 [[ $SELECT == 1 ]] && S2=(keep_snapshots=true snapshot_every=3)
 TRAIN="python -m maipp_bench.train algo=ours threads=2 progress=false total_updates=100000"
+read -ra EXTRA <<< "${OVERRIDES:-}"  # words, typed last in every stage
 mkdir -p "$OUT"
 echo "start $(date -u +%FT%TZ)" | tee "$OUT/wall.txt"
 
 $TRAIN seed="$SEED" algo.intent_rollouts=4 algo.intent_depth=5 max_minutes="$M1" \
-    eval_every=0 hydra.run.dir="$OUT/stage1"
+    eval_every=0 hydra.run.dir="$OUT/stage1" "${EXTRA[@]}"
 echo "stage1 done $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
 
 mkdir -p "$OUT/stage2" && cp "$OUT/stage1/checkpoint.pt" "$OUT/stage2/checkpoint.pt"
 # seed=0: until 2026-11-26 a resume took untyped fields from the defaults, so every draw's
 # stage 2 reset its worlds from seed 0; typed, so that the documented draws reproduce.
 $TRAIN resume="$OUT/stage2/checkpoint.pt" seed=0 algo.intent_rollouts=4 algo.intent_depth=5 \
-    n_envs=16 algo.epochs=4 algo.target_kl=0.02 max_minutes="$M12" eval_every=0 "${S2[@]}"
+    n_envs=16 algo.epochs=4 algo.target_kl=0.02 max_minutes="$M12" eval_every=0 "${S2[@]}" \
+    "${EXTRA[@]}"
 echo "stage2 done $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
 
 START="$OUT/stage2/checkpoint.pt"
@@ -76,7 +80,7 @@ fi
 $TRAIN init="$START" seed="$((SEED + 2))" algo.lr="$LR3" \
     algo.intent_rollouts=8 algo.intent_depth=5 n_envs=16 algo.epochs=4 algo.target_kl=0.02 \
     max_minutes="$M3" eval_every=0 keep_snapshots=true snapshot_every=5 \
-    hydra.run.dir="$OUT/stage3"
+    hydra.run.dir="$OUT/stage3" "${EXTRA[@]}"
 LAST=$(ls "$OUT/stage3/snapshots" | sed -n 's/update_0*\([0-9]*\)\.pt/\1/p' | sort -n | tail -1)
 python -m maipp_bench.train algo=ours resume="$OUT/stage3/checkpoint.pt" total_updates=0 \
     threads=2 progress=false export="$OUT/avg.pt" export_from="5-$LAST" \

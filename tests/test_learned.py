@@ -432,6 +432,33 @@ def test_train_2h_rejects_a_bad_select_before_training(tmp_path):
     assert not out.exists()
 
 
+def test_train_2h_runs_its_stages_and_the_choice_end_to_end(tmp_path):
+    """benchmarks/train_2h.sh with SELECT=1 on the tiny task (OVERRIDES, typed after the
+    script's own fields): three stages, the held-out choice, and the averaged policy file
+    whose card names the averaged snapshots, the chosen start and every stage's command."""
+    out = tmp_path / "run"
+    tiny = [*TINY_TRAIN, "algo.intent_rollouts=2", "algo.intent_depth=2"]
+    proc = subprocess.run(
+        ["bash", str(Path(__file__).parents[1] / "benchmarks" / "train_2h.sh"), str(out), "3",
+         "0.02", "0.02", "0.25"], capture_output=True, text=True, timeout=600,
+        env={**os.environ, "SELECT": "1", "SELECT_EPISODES": "2",
+             "OVERRIDES": " ".join(tiny)})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    stamps = [line.split()[0] for line in (out / "wall.txt").read_text().splitlines()]
+    assert stamps == ["start", "stage1", "stage2", "selected", "end"]
+    choice = json.loads((out / "select.json").read_text())
+    assert choice["budget"] == 2.0 and choice["episodes"] == 2
+    card = json.loads((out / "avg.json").read_text())
+    averaged = card["averaged_updates"]
+    assert averaged[0] == 5 and averaged == list(range(5, averaged[-1] + 1, 5))
+    assert card["init"]["path"] == choice["chosen"]["path"]
+    commands = [card["init"]["command"], *card["init"]["resumed_with"], card["command"]]
+    assert all("env=tiny" in c and "algo.intent_depth=2" in c for c in commands)
+    assert "algo.lr=3e-5" in card["command"]
+    core, _ = load_core(out / "avg.pt")
+    assert core.net.cfg.embed_dim == 32
+
+
 def test_select_snapshot_scores_the_window_and_picks_the_lowest(tiny_checkpoint, tmp_path):
     """benchmarks/select_snapshot.py (train_2h.sh's SELECT=1): the candidates are the run's
     end and its snapshots inside the window; the choice is the lowest mean Tr(P_f)."""
