@@ -24,6 +24,8 @@
 # Usage: [SELECT=1] [OVERRIDES="k=v ..."] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
 # OVERRIDES are Hydra overrides typed after each stage's own fields, so they win (e.g.
 # algo.precision=bf16; the tests' tiny task: env=tiny n_envs=3 ...); none by default.
+# They are split on spaces (no value with a space) and reach the three training stages,
+# not the choice or the export (which read the run's own config).
 # LR3 is stage 3's Adam learning rate: 3e-5 by default since 2026-11-26 (1e-4, the paper's,
 # before). Chosen from training curves (1e-4 let stage 3's reward per decision fall) and,
 # said openly, from the protocol rows of six draws (docs/results.md, "All six draws").
@@ -65,7 +67,7 @@ mkdir -p "$OUT/stage2" && cp "$OUT/stage1/checkpoint.pt" "$OUT/stage2/checkpoint
 # stage 2 reset its worlds from seed 0; typed, so that the documented draws reproduce.
 $TRAIN resume="$OUT/stage2/checkpoint.pt" seed=0 algo.intent_rollouts=4 algo.intent_depth=5 \
     n_envs=16 algo.epochs=4 algo.target_kl=0.02 max_minutes="$M12" eval_every=0 "${S2[@]}" \
-    "${EXTRA[@]}"
+    hydra.run.dir="$OUT/stage2" "${EXTRA[@]}"
 echo "stage2 done $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
 
 START="$OUT/stage2/checkpoint.pt"

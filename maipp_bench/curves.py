@@ -49,18 +49,23 @@ X_AXES = {"frames": ("frames", "env frames", 1),
 
 
 def init_offsets(source: str | Path) -> dict[str, float]:
-    """Where a fine-tune card's curve starts on the ``update`` and ``wall_s`` axes: its
-    starting network's updates and seconds (frames are offset by :func:`read_curve`);
-    empty for a run folder or a card trained from scratch."""
+    """Where a fine-tune card's curve starts on the ``update`` and ``wall_s`` axes: the
+    updates and seconds of every network before it (a fine-tune of a fine-tune counts
+    both; frames are offset by :func:`read_curve`); empty for a run folder or a card
+    trained from scratch."""
     path = Path(source)
     if path.is_dir() or path.suffix != ".json":
         return {}
     card = json.loads(path.read_text())
-    init = card.get("init") or {}
-    if not init:
+    chain, node = [], card.get("init") or {}
+    while node:
+        chain.append(node)
+        node = node.get("init") or {}
+    if not chain:
         return {}
-    wall = init.get("wall_s", card.get("wall_s_with_init", 0) - card.get("wall_s", 0))
-    return {"update": init.get("update", 0), "wall_s": wall}
+    wall = (card["wall_s_with_init"] - card.get("wall_s", 0) if "wall_s_with_init" in card
+            else sum(n.get("wall_s", 0) for n in chain))
+    return {"update": sum(n.get("update", 0) for n in chain), "wall_s": wall}
 
 
 def x_value(row: dict[str, Any], axis: str, offsets: dict[str, float] | None = None) -> float:

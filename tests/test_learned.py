@@ -134,7 +134,7 @@ def test_training_runs_with_finite_losses_and_checkpoint_round_trip(tiny_checkpo
     assert len(moved) > len(fresh) // 2
 
 
-def test_bf16_precision_autocasts_training_only(tmp_path):
+def test_bf16_precision_autocasts_training_only(tmp_path, monkeypatch):
     """algo.precision=bf16: the networks' products in bfloat16 while training (outputs
     float32, masks kept, close to float32), but the held-out evaluation, the checkpoint
     and every later load play float32; a bad precision is a clear error."""
@@ -167,9 +167,20 @@ def test_bf16_precision_autocasts_training_only(tmp_path):
     with torch.no_grad():
         assert torch.equal(float32(*rows)[0], ref_logits)  # full precision: float32's bits
 
+    import maipp_bench.train as train_mod
+
+    seen = []
+    heldout = train_mod.heldout_rows
+
+    def spy(core, *args, **kwargs):  # what training's held-out evaluation plays with
+        seen.append(core.autocast)
+        return heldout(core, *args, **kwargs)
+
+    monkeypatch.setattr(train_mod, "heldout_rows", spy)
     run = [*TINY_TRAIN, "algo.precision=bf16", "total_updates=1", "eval_every=1",
            "eval_episodes=2", "eval_budget=1.0"]
     ckpt = train(compose_train(*run), tmp_path / "bf16")
+    assert seen == [None]  # float32, though the run trains in bf16
     state = torch.load(ckpt, weights_only=False)
     assert state["config"]["algo"]["precision"] == "bf16"
     for key in ("loss_objective", "loss_critic", "eval/trace"):
@@ -440,7 +451,7 @@ def test_train_2h_runs_its_stages_and_the_choice_end_to_end(tmp_path):
     tiny = [*TINY_TRAIN, "algo.intent_rollouts=2", "algo.intent_depth=2"]
     proc = subprocess.run(
         ["bash", str(Path(__file__).parents[1] / "benchmarks" / "train_2h.sh"), str(out), "3",
-         "0.02", "0.02", "0.25"], capture_output=True, text=True, timeout=600,
+         "0.02", "0.1", "0.3"], capture_output=True, text=True, timeout=600,
         env={**os.environ, "SELECT": "1", "SELECT_EPISODES": "2",
              "OVERRIDES": " ".join(tiny)})
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -564,6 +575,10 @@ def test_curves_plot_against_updates_or_minutes_from_a_fine_tunes_start(tmp_path
     offsets = init_offsets(card)
     assert offsets == {"update": 40, "wall_s": 1200.0}
     assert init_offsets(tmp_path) == {}  # a run folder starts at zero
+    twice = tmp_path / "twice.json"  # a fine-tune of a fine-tune counts both before it
+    twice.write_text(json.dumps({"curve": curve, "wall_s": 90.0, "init": {
+        "update": 40, "wall_s": 1200.0, "init": {"update": 100, "wall_s": 3000.0}}}))
+    assert init_offsets(twice) == {"update": 140, "wall_s": 4200.0}
     rows = read_curve(card)
     for axis, xs in (("updates", [41, 42, 43]), ("minutes", [20.5, 21.0, 21.5]),
                      ("frames", [5100, 5200, 5300])):

@@ -115,7 +115,9 @@ class AttentionPolicyNet(nn.Module):
         ctx, _ = self.cross(q.unsqueeze(1), nbr, nbr, key_padding_mask=~mask)
         ctx = ctx.squeeze(1) + q
         scores = (self.query(ctx).unsqueeze(1) * self.key(nbr)).sum(-1)
-        logits = self.cfg.clip * torch.tanh(scores / math.sqrt(h.shape[-1]))
+        # float32 under autocast too (identity otherwise): bf16 would round logits near
+        # the clip to ~0.04, noise in PPO's ratio between collection and loss
+        logits = self.cfg.clip * torch.tanh(scores.float() / math.sqrt(h.shape[-1]))
         logits = logits.masked_fill(~mask, -torch.inf)
         return logits, self.value_head(ctx), state
 

@@ -22,7 +22,7 @@ import torch
 from tensordict import TensorDictBase
 
 from maipp_bench.algos.attention import FEATURE_SETS
-from maipp_bench.algos.modules import AttentionCore
+from maipp_bench.algos.modules import AttentionCore, autocast_to
 from maipp_bench.envs.belief import interest_trace
 from maipp_bench.envs.dynamics import EPS, edge_points, sample_offsets
 from maipp_bench.envs.intent import fit_intent
@@ -144,7 +144,8 @@ def fantasy_rollouts(core: AttentionCore, env: MAIPPEnv, rows: TensorDictBase,
     # the env's dtype, as the env does, and rounded when written.
     obs_dtype = rows.get("node_features").dtype
     feats = rep(rows.get("node_features").float())  # a copy (repeat_interleave): written below
-    positions = core.net.pos(rows.get("node_encoding").float())  # [B, N, d]: rollout row
+    with autocast_to(core.autocast, query.device):  # as the core's own calls (precision)
+        positions = core.net.pos(rows.get("node_encoding").float())  # [B, N, d]: rollout row
     # b * a + r reads positions[b]
     cur, since = rep(rows.get("current_node")), st.since_sample[er, ar]
     pool = st.team_budget[er]
