@@ -190,6 +190,43 @@ def test_bf16_precision_autocasts_training_only(tmp_path, monkeypatch):
         build_learner(compose_train(*TINY_TRAIN, "algo.precision=fp8").algo, 4, 0.4)
 
 
+@pytest.mark.parametrize("precision", ["float32", "bf16"])
+def test_loss_recomputes_the_collectors_log_probs(precision):
+    """PPO's first ratio is 1 to float32 rounding in either precision: the loss (train
+    mode, shuffled minibatches) recomputes the log-probability the collector stored for
+    every decision row (each row is computed alone, so bf16 rounds both alike), though
+    bf16's are far from float32's (benchmarks/logprob_mismatch.py, the paper's network)."""
+    from maipp_bench.algos.modules import LOG_PROB_KEY, full_precision
+    from maipp_bench.algos.ppo import build_learner
+    from maipp_bench.train import collected_decisions, make_collection
+
+    cfg = compose_train(*TINY_TRAIN, f"algo.precision={precision}")
+    env_cfg = MAIPPConfig.from_dict(dict(cfg.env))
+    torch.manual_seed(0)
+    learner = build_learner(cfg.algo, env_cfg.node_encoding_dim, env_cfg.interest_threshold)
+    env, collector, _ = make_collection(cfg, env_cfg, learner)
+    env.set_seed(0)
+    learner.core.eval()
+    rows = collected_decisions(learner, next(iter(collector)), cfg.algo)
+    collector.shutdown()
+    stored = rows.get(LOG_PROB_KEY)
+
+    def loss_log_prob() -> torch.Tensor:
+        out = torch.empty_like(stored)
+        with torch.no_grad():
+            for chunk in torch.randperm(rows.numel()).split(cfg.algo.minibatch):
+                mb = rows[chunk].clone()
+                out[chunk] = learner.actor.get_dist(mb).log_prob(mb.get("action"))
+        return out
+
+    learner.core.train()
+    assert rows.numel() > cfg.algo.minibatch  # more than one minibatch, in another order
+    assert (loss_log_prob() - stored).abs().max() < 1e-5
+    with full_precision(learner.core):
+        exact = loss_log_prob()
+    assert ((exact - stored).abs().max() > 1e-3) == (precision == "bf16")
+
+
 def assert_same_training(a: Path, b: Path) -> None:
     """Two checkpoints hold the same weights and the same curve (wall time aside)."""
     a, b = torch.load(a, weights_only=False), torch.load(b, weights_only=False)
