@@ -36,7 +36,7 @@ from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
 import maipp_bench.train as train_mod
-from maipp_bench.algos.modules import LOG_PROB_KEY, PRECISIONS
+from maipp_bench.algos.modules import LOG_PROB_KEY, PRECISIONS, full_precision
 from maipp_bench.algos.ppo import build_learner
 from maipp_bench.allocator import keep_freed_memory
 from maipp_bench.envs.config import MAIPPConfig
@@ -47,7 +47,8 @@ def loss_log_prob(learner, rows, minibatch: int, seed: int) -> torch.Tensor:
     minibatches of a random order (``seed``), returned in the rows' order."""
     learner.core.train()
     perm = torch.randperm(rows.numel(), generator=torch.Generator().manual_seed(seed))
-    out = torch.empty(rows.numel(), dtype=torch.float64)
+    perm = perm.to(rows.device)
+    out = torch.empty(rows.numel(), dtype=torch.float64, device=rows.device)
     with torch.no_grad():
         for chunk in perm.split(minibatch):
             mb = rows[chunk].clone()
@@ -92,9 +93,13 @@ def main() -> None:
     if args.init:
         train_mod.init_weights(learner, args.init, cfg.algo, env_cfg.interest_threshold)
     env, collector, _ = train_mod.make_collection(cfg, env_cfg, learner)
+    # every network with a precision (the core, MAPPO's critic), the same weights in each
+    nets = [m for net in (learner.actor, learner.critic) if net is not None
+            for m in net.modules() if hasattr(m, "autocast")]
     table = {}
     for name in args.precisions:
-        learner.core.autocast = PRECISIONS[name]  # the same weights in each precision
+        for m in nets:
+            m.autocast = PRECISIONS[name]
         torch.manual_seed(args.update)
         env.set_seed(args.update)
         collector.reset()
@@ -103,8 +108,8 @@ def main() -> None:
         rows = train_mod.collected_decisions(learner, batch, cfg.algo)
         table[name] = mismatch(learner, rows, cfg.algo.minibatch, cfg.algo.clip_epsilon)
         # the size of the rounding itself: the same rows' log-probs in float32
-        learner.core.autocast = None
-        exact = loss_log_prob(learner, rows, cfg.algo.minibatch, seed=0)
+        with full_precision(*nets):
+            exact = loss_log_prob(learner, rows, cfg.algo.minibatch, seed=0)
         table[name]["vs_float32_mean_abs"] = float(
             (exact - rows.get(LOG_PROB_KEY).double()).abs().mean())
     collector.shutdown()

@@ -222,6 +222,9 @@ def test_loss_recomputes_the_collectors_log_probs(precision):
     learner.core.train()
     assert rows.numel() > cfg.algo.minibatch  # more than one minibatch, in another order
     assert (loss_log_prob() - stored).abs().max() < 1e-5
+    with torch.no_grad():  # and the loss itself reads them as its behaviour log-probs
+        first = learner.loss(rows[:cfg.algo.minibatch].clone())
+    assert abs(float(first["kl_approx"])) < 1e-6 and float(first["clip_fraction"]) == 0
     with full_precision(learner.core):
         exact = loss_log_prob()
     assert ((exact - stored).abs().max() > 1e-3) == (precision == "bf16")
