@@ -101,21 +101,29 @@ def figure(sources: dict[str, list[dict[str, Any]]],
            selected: dict[str, float] | None = None, x: str = "frames",
            offsets: dict[str, dict[str, float]] | None = None,
            xmax: float | None = None) -> plt.Figure:
-    """Three panels against the ``x`` axis of :data:`X_AXES`, one line per named curve in
-    the same colour in every panel (a curve may have no points in one, e.g. a run without
-    held-out evaluations), a dashed line at each curve's ``selected`` position on that
-    axis; ``offsets`` shift a fine-tune's curve (:func:`init_offsets`); ``xmax`` shows
-    the axis from 0 to there (short runs beside a long one)."""
+    """Up to three panels against the ``x`` axis of :data:`X_AXES` (one no curve has a
+    point for is left out), one line per named curve in the same colour in every panel (a
+    curve may have no points in one, e.g. a run without held-out evaluations), a dashed
+    line at each curve's ``selected`` position on that axis; ``offsets`` shift a
+    fine-tune's curve (:func:`init_offsets`); ``xmax`` shows the axis from 0 to there
+    (short runs beside a long one)."""
     if x not in X_AXES:
         raise ValueError(f"x={x!r}; valid: {', '.join(X_AXES)}")
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6), constrained_layout=True)
+    panels = [("trace_final", "Tr(P_f), training episodes"),
+              ("eval/trace", eval_title(sources)),
+              ("reward_per_decision", "reward per decision")]
+    # a panel no curve has a point for (no run evaluated on held-out episodes) is left out
+    panels = [(k, t) for k, t in panels
+              if any(k in r and r[k] == r[k] for rows in sources.values() for r in rows)]
+    if not panels:
+        raise ValueError("no curve has any point to draw")
+    fig, axes = plt.subplots(1, len(panels), figsize=(13 * len(panels) / 3, 3.6),
+                             constrained_layout=True, squeeze=False)
+    axes = axes[0]
     cycle = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     if len(sources) > len(cycle):  # past the cycle's ten, colours would repeat: tab20's
         cycle = [plt.get_cmap("tab20")(i) for i in range(20)]
     colors = {name: cycle[i % len(cycle)] for i, name in enumerate(sources)}
-    panels = [("trace_final", "Tr(P_f), training episodes"),
-              ("eval/trace", eval_title(sources)),
-              ("reward_per_decision", "reward per decision")]
     for ax, (key, title) in zip(axes, panels):
         for name, rows in sources.items():
             pts = [(x_value(r, x, (offsets or {}).get(name)), r[key]) for r in rows

@@ -663,6 +663,23 @@ def test_a_curve_keeps_its_colour_in_every_panel():
         assert panel["a: selected update"] == colors[0]["a"]  # drawn where "a" has no points
 
 
+def test_a_panel_without_points_is_left_out():
+    """Runs without held-out evaluations draw two panels, not an empty third; a figure
+    with nothing to draw is a clear error."""
+    import matplotlib.pyplot as plt
+
+    from maipp_bench.curves import figure
+
+    rows = [{"update": u, "frames": u, "trace_final": 1.0, "reward_per_decision": 0.1,
+             "eval/trace": float("nan")} for u in (1, 2)]
+    fig = figure({"a": rows, "b": rows})
+    titles = [ax.get_title() for ax in fig.axes]
+    plt.close(fig)
+    assert titles == ["Tr(P_f), training episodes", "reward per decision"]
+    with pytest.raises(ValueError, match="no curve has any point"):
+        figure({"a": [{"update": 1, "frames": 1}]})
+
+
 def test_eleven_curves_have_eleven_colours():
     """Past the default cycle's ten colours the eleventh curve took the first's (the
     two-hour draws' figure drew the shipped run and a draw in one blue)."""
