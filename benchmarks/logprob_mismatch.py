@@ -42,25 +42,11 @@ from maipp_bench.allocator import keep_freed_memory
 from maipp_bench.envs.config import MAIPPConfig
 
 
-def loss_log_prob(learner, rows, minibatch: int, seed: int) -> torch.Tensor:
-    """Every row's log-probability of its action as the loss computes it (train mode), in
-    minibatches of a random order (``seed``), returned in the rows' order."""
-    learner.core.train()
-    perm = torch.randperm(rows.numel(), generator=torch.Generator().manual_seed(seed))
-    perm = perm.to(rows.device)
-    out = torch.empty(rows.numel(), dtype=torch.float64, device=rows.device)
-    with torch.no_grad():
-        for chunk in perm.split(minibatch):
-            mb = rows[chunk].clone()
-            out[chunk] = learner.actor.get_dist(mb).log_prob(mb.get("action")).double()
-    return out
-
-
 def mismatch(learner, rows, minibatch: int, clip: float) -> dict:
     """|log-prob the loss computes - log-prob the collector stored| over ``rows``, and the
     floor: the loss's log-probs in two minibatch orders against each other."""
-    now = loss_log_prob(learner, rows, minibatch, seed=0)
-    again = loss_log_prob(learner, rows, minibatch, seed=1)
+    now, again = (learner.action_log_prob(rows, minibatch, torch.Generator().manual_seed(seed))
+                  .double() for seed in (0, 1))
     with torch.no_grad():
         first = learner.loss(rows[:minibatch].clone())
     signed = now - rows.get(LOG_PROB_KEY).double()
@@ -109,7 +95,7 @@ def main() -> None:
         table[name] = mismatch(learner, rows, cfg.algo.minibatch, cfg.algo.clip_epsilon)
         # the size of the rounding itself: the same rows' log-probs in float32
         with full_precision(*nets):
-            exact = loss_log_prob(learner, rows, cfg.algo.minibatch, seed=0)
+            exact = learner.action_log_prob(rows, cfg.algo.minibatch).double()
         table[name]["vs_float32_mean_abs"] = float(
             (exact - rows.get(LOG_PROB_KEY).double()).abs().mean())
     collector.shutdown()

@@ -109,12 +109,14 @@ def figure(sources: dict[str, list[dict[str, Any]]],
     (short runs beside a long one)."""
     if x not in X_AXES:
         raise ValueError(f"x={x!r}; valid: {', '.join(X_AXES)}")
-    panels = [("trace_final", "Tr(P_f), training episodes"),
-              ("eval/trace", eval_title(sources)),
-              ("reward_per_decision", "reward per decision")]
-    # a panel no curve has a point for (no run evaluated on held-out episodes) is left out
-    panels = [(k, t) for k, t in panels
-              if any(k in r and r[k] == r[k] for rows in sources.values() for r in rows)]
+    titles = {"trace_final": "Tr(P_f), training episodes", "eval/trace": eval_title(sources),
+              "reward_per_decision": "reward per decision"}
+    # each panel's finite points per curve; a panel no curve has a point for (no run
+    # evaluated on held-out episodes) is left out
+    points = {key: {name: [(x_value(r, x, (offsets or {}).get(name)), r[key]) for r in rows
+                           if key in r and r[key] == r[key]]
+                    for name, rows in sources.items()} for key in titles}
+    panels = [key for key, curves in points.items() if any(curves.values())]
     if not panels:
         raise ValueError("no curve has any point to draw")
     fig, axes = plt.subplots(1, len(panels), figsize=(13 * len(panels) / 3, 3.6),
@@ -124,17 +126,15 @@ def figure(sources: dict[str, list[dict[str, Any]]],
     if len(sources) > len(cycle):  # past the cycle's ten, colours would repeat: tab20's
         cycle = [plt.get_cmap("tab20")(i) for i in range(20)]
     colors = {name: cycle[i % len(cycle)] for i, name in enumerate(sources)}
-    for ax, (key, title) in zip(axes, panels):
-        for name, rows in sources.items():
-            pts = [(x_value(r, x, (offsets or {}).get(name)), r[key]) for r in rows
-                   if key in r and r[key] == r[key]]
+    for ax, key in zip(axes, panels):
+        for name, pts in points[key].items():
             if pts:
                 ax.plot(*zip(*pts), marker="." if len(pts) < 40 else None, label=name,
                         color=colors[name])
             if selected and name in selected:
                 ax.axvline(selected[name], color=colors[name], ls="--", lw=1,
                            label=f"{name}: selected update")
-        ax.set_title(title)
+        ax.set_title(titles[key])
         ax.set_xlabel(X_AXES[x][1])
         if xmax is not None:  # every axis here starts at 0: a fine-tune's too (offsets)
             ax.set_xlim(0, xmax)

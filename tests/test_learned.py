@@ -210,23 +210,13 @@ def test_loss_recomputes_the_collectors_log_probs(precision):
     rows = collected_decisions(learner, next(iter(collector)), cfg.algo)
     collector.shutdown()
     stored = rows.get(LOG_PROB_KEY)
-
-    def loss_log_prob() -> torch.Tensor:
-        out = torch.empty_like(stored)
-        with torch.no_grad():
-            for chunk in torch.randperm(rows.numel()).split(cfg.algo.minibatch):
-                mb = rows[chunk].clone()
-                out[chunk] = learner.actor.get_dist(mb).log_prob(mb.get("action"))
-        return out
-
-    learner.core.train()
     assert rows.numel() > cfg.algo.minibatch  # more than one minibatch, in another order
-    assert (loss_log_prob() - stored).abs().max() < 1e-5
+    assert (learner.action_log_prob(rows, cfg.algo.minibatch) - stored).abs().max() < 1e-5
     with torch.no_grad():  # and the loss itself reads them as its behaviour log-probs
         first = learner.loss(rows[:cfg.algo.minibatch].clone())
     assert abs(float(first["kl_approx"])) < 1e-6 and float(first["clip_fraction"]) == 0
     with full_precision(learner.core):
-        exact = loss_log_prob()
+        exact = learner.action_log_prob(rows, cfg.algo.minibatch)
     assert ((exact - stored).abs().max() > 1e-3) == (precision == "bf16")
 
 

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import torch
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import ClipPPOLoss, MAPPOLoss
@@ -138,6 +139,20 @@ class Learner:
 
     def parameters(self) -> list[torch.nn.Parameter]:
         return list(self.loss.parameters())
+
+    def action_log_prob(self, rows: TensorDictBase, minibatch: int,
+                        generator: torch.Generator | None = None) -> torch.Tensor:
+        """Each decision row's log-probability of its ``action`` as the loss computes it
+        (train mode, no gradient, ``minibatch`` rows at a time in a random order), in the
+        rows' order: what PPO's first ratio sets against the collector's stored one."""
+        self.core.train()
+        order = torch.randperm(rows.numel(), generator=generator).to(rows.device)
+        out = torch.empty(rows.numel(), device=rows.device)
+        with torch.no_grad():
+            for chunk in order.split(minibatch):
+                mb = rows[chunk].clone()
+                out[chunk] = self.actor.get_dist(mb).log_prob(mb.get("action"))
+        return out
 
 
 def build_learner(algo: Any, pe_dim: int, threshold: float,
