@@ -79,9 +79,7 @@ def main() -> None:
     if args.init:
         train_mod.init_weights(learner, args.init, cfg.algo, env_cfg.interest_threshold)
     env, collector, _ = train_mod.make_collection(cfg, env_cfg, learner)
-    # every network with a precision (the core, MAPPO's critic), the same weights in each
-    nets = [m for net in (learner.actor, learner.critic) if net is not None
-            for m in net.modules() if hasattr(m, "autocast")]
+    nets = learner.precision_modules()  # the same weights in each precision
     table = {}
     for name in args.precisions:
         for m in nets:

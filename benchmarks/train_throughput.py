@@ -13,10 +13,14 @@ card (the wall time of every update is in its curve), or from a run folder or it
 ``curve.jsonl``; ``--split U`` also reports updates 1..U and U+1.. apart (e.g. a run
 resumed with other code at update U).
 
+``--ratio BASE.json OTHER.json`` prints how much faster OTHER ran than BASE (two
+``--out`` files measured side by side), per whole update and per phase.
+
 Usage (Hydra overrides as for training):
     python benchmarks/train_throughput.py algo=ours --updates 3
     python benchmarks/train_throughput.py --card maipp_bench/checkpoints/ours.json --split 70
     python benchmarks/train_throughput.py algo=mappo n_envs=16 device=cuda --out t.json
+    python benchmarks/train_throughput.py --ratio float32.json bf16.json
 """
 
 from __future__ import annotations
@@ -51,6 +55,16 @@ def card_segment(curve: list[dict], start: int, stop: int) -> dict:
             "decisions_per_s": decisions / wall}
 
 
+# speed fields of an --out file; seconds_per_update is a time, the others rates
+SPEEDS = ("seconds_per_update", "collect_frames_per_s", "learn_rows_per_s")
+
+
+def speedups(base: dict, other: dict) -> dict[str, float]:
+    """How many times faster ``other`` ran than ``base`` in each of :data:`SPEEDS`."""
+    return {k: base[k] / other[k] if k == "seconds_per_update" else other[k] / base[k]
+            for k in SPEEDS}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("overrides", nargs="*")
@@ -62,7 +76,14 @@ def main() -> None:
                         "(the reference for benchmarks/ti_distinct_paths.py's speed-up)")
     p.add_argument("--split", type=int, nargs="*", default=[],
                    help="with --card: also report the updates between these update numbers")
+    p.add_argument("--ratio", nargs=2, metavar=("BASE", "OTHER"),
+                   help="two --out files: how much faster OTHER ran than BASE")
     args = p.parse_args()
+    if args.ratio:
+        base, other = (json.loads(Path(f).read_text()) for f in args.ratio)
+        print(json.dumps({"base": args.ratio[0], "other": args.ratio[1],
+                          "speedup": speedups(base, other)}, indent=1))
+        return
     if args.card:
         # A card's own curve (read_curve would shift a fine-tune's frames by its init's,
         # which card_segment must not count), else a run folder or its curve.jsonl.

@@ -220,6 +220,19 @@ def test_loss_recomputes_the_collectors_log_probs(precision):
     assert ((exact - stored).abs().max() > 1e-3) == (precision == "bf16")
 
 
+@pytest.mark.parametrize("algo, nets", [("ours", ["AttentionCore"]),
+                                         ("mappo", ["AttentionCore", "StateCritic"])])
+def test_precision_modules_are_every_network_with_a_precision(algo, nets):
+    """A benchmark that switches precision after build must reach MAPPO's critic too."""
+    from maipp_bench.algos.ppo import build_learner
+
+    learner = build_learner(compose_train(*TINY_TRAIN, f"algo={algo}",
+                                          "algo.precision=bf16").algo, 4, 0.4)
+    mods = learner.precision_modules()
+    assert [type(m).__name__ for m in mods] == nets
+    assert all(m.autocast == torch.bfloat16 for m in mods)
+
+
 def assert_same_training(a: Path, b: Path) -> None:
     """Two checkpoints hold the same weights and the same curve (wall time aside)."""
     a, b = torch.load(a, weights_only=False), torch.load(b, weights_only=False)

@@ -140,6 +140,14 @@ class Learner:
     def parameters(self) -> list[torch.nn.Parameter]:
         return list(self.loss.parameters())
 
+    def precision_modules(self) -> list[torch.nn.Module]:
+        """The networks that carry a precision (their own ``autocast`` attribute: the
+        TensorDictModules around them only forward it): the core and, with a centralised
+        critic, that critic (the loss's ``modules()`` holds neither). Set them together,
+        or run them in float32 with :func:`full_precision`."""
+        nets = [self.actor] if self.critic is None else [self.actor, self.critic]
+        return [m for net in nets for m in net.modules() if "autocast" in vars(m)]
+
     def action_log_prob(self, rows: TensorDictBase, minibatch: int,
                         generator: torch.Generator | None = None) -> torch.Tensor:
         """Each decision row's log-probability of its ``action`` as the loss computes it
