@@ -32,6 +32,8 @@ Usage:
         --against ours_ti catnipp_ti sga_rrt_0.3_0.4 oracle
     python benchmarks/paired_subset.py --subset outputs/h10_results --method ours_ti \\
         --against catnipp_ti --exclude 86171:155871   # without one episode
+    python benchmarks/paired_subset.py --subset outputs/h14_results --method ours_ti \\
+        --results outputs/h13_results --against ours_ti   # two draws, episode by episode
 """
 
 from __future__ import annotations
