@@ -147,8 +147,9 @@ def paired(subset: Path, suite: str, method: str, results: Path, against: list[s
             # Where the mean difference comes from: episodes with and without a trap.
             split = [[v for k, v in d.items() if (rows[k]["traps"] > 0) == trapped]
                      for trapped in (False, True)]
-            parts = "  ".join(f"{tag} {len(v)} eps {st.mean(v):+.2f}"
-                              for tag, v in zip(("untrapped", "trapped"), split) if v)
+            parts = "  ".join(f"{tag} {len(v)} eps {m:+.2f} ± {e:.2f}"
+                              for tag, v in zip(("untrapped", "trapped"), split) if v
+                              for m, e in [mean_se(v)])
             print(f"  {name:32s} Tr(P_f) {st.mean(rows[k]['trace'] for k in keys):7.1f}"
                   f" (median {st.median(rows[k]['trace'] for k in keys):.1f})"
                   f"  traps {st.mean(rows[k]['traps'] for k in keys):.2f}"
