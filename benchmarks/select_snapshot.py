@@ -1,22 +1,30 @@
-"""Choose a training snapshot on held-out episodes: the selection step of
-``benchmarks/train_2h.sh`` with ``SELECT=1`` (docs/results.md, "An eighth run").
+"""Choose a network on held-out episodes: the selection steps of
+``benchmarks/train_2h.sh`` with ``SELECT=1`` (docs/results.md, "An eighth run") and
+``FINAL=1`` ("The final choice").
 
-Every candidate (the snapshots of ``--run``'s ``snapshots/`` from update ``last - window``
-on, and the run's own ``checkpoint.pt``) plays ``--method`` on the same ``--episodes``
-held-out episodes (training's held-out seeds, never the protocol's) at ``--budget``; the
-one with the lowest mean Tr(P_f) is chosen (ties: the later update). Candidates are
-scored in ``--workers`` processes of one thread each. The table goes to stderr and, with
-the choice, to ``--out`` as JSON; stdout is the chosen path alone.
+Every candidate plays ``--method`` on the same ``--episodes`` held-out episodes (training's
+held-out seeds, never the protocol's) at each ``--budget``; the one with the lowest score
+is chosen, ties going to the later candidate. The score is the mean Tr(P_f) at one
+budget, the geometric mean over budgets of it at several (as training's ``eval/trace``).
+The candidates are either ``--run``'s own ``checkpoint.pt`` and the snapshots of its
+``snapshots/`` from update ``last - window`` on (oldest first), or the files named by
+``--candidates`` in the order given; the last candidate is the reference that the table's
+paired differences are taken against. Candidates are scored in ``--workers`` processes of
+one thread each. The table goes to stderr and, with the choice, to ``--out`` as JSON;
+stdout is the chosen path alone.
 
 Usage:
     python benchmarks/select_snapshot.py --run outputs/h9/stage2 --window 15 \\
         --budget 2 --episodes 160 --workers 2 --out outputs/h9/select.json
+    python benchmarks/select_snapshot.py --candidates start.pt late.pt avg.pt \\
+        --budget 4 5 --episodes 64 --workers 2 --out final_select.json
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import re
 import statistics as st
 import sys
@@ -44,11 +52,30 @@ def candidates(run: Path, window: int) -> list[tuple[int, Path]]:
     return sorted(found.items())
 
 
+def named(paths: list[Path]) -> list[tuple[int, Path]]:
+    """(update, path) of each file of ``--candidates``, in the order given; a missing
+    file is a clear error before any worker starts."""
+    missing = [str(p) for p in paths if not p.exists()]
+    if missing:
+        raise FileNotFoundError(f"--candidates: no such file: {', '.join(missing)}")
+    return [(int(torch.load(p, map_location="cpu", weights_only=False)["update"]), p)
+            for p in paths]
+
+
+def score(per_budget: list[float]) -> float:
+    """One budget's mean, or the geometric mean of several (training's ``eval/trace``)."""
+    if len(per_budget) == 1:
+        return per_budget[0]
+    if min(per_budget) <= 0:
+        return 0.0
+    return math.exp(sum(math.log(v) for v in per_budget) / len(per_budget))
+
+
 def _init_worker() -> None:
     torch.set_num_threads(1)
 
 
-def _score(path: str, method: str, budget: float, episodes: int) -> list[float]:
+def _traces(path: str, method: str, budget: float, episodes: int) -> list[float]:
     """Tr(P_f) of each held-out episode for ``method`` played with ``path``'s network."""
     from maipp_bench.algos.checkpoint import load_core
     from maipp_bench.algos.registry import get_method
@@ -63,45 +90,62 @@ def _score(path: str, method: str, budget: float, episodes: int) -> list[float]:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--run", type=Path, required=True, help="a training run's directory")
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--run", type=Path, help="a training run's directory")
+    source.add_argument("--candidates", type=Path, nargs="+", metavar="FILE",
+                        help="checkpoints or policy files (the last is the reference)")
     p.add_argument("--window", type=int, default=15, metavar="UPDATES",
-                   help="snapshots from update (last - UPDATES) on are candidates")
+                   help="with --run: snapshots from update (last - UPDATES) on are candidates")
     p.add_argument("--method", default="ours_ti")
-    p.add_argument("--budget", type=float, default=2.0)
+    p.add_argument("--budget", type=float, nargs="+", default=[2.0],
+                   help="one or more budgets (several: geometric mean of the means)")
     p.add_argument("--episodes", type=int, default=160)
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", type=Path, help="write the scores and the choice here (JSON)")
     args = p.parse_args()
-    if args.window < 0 or args.episodes < 2 or args.workers < 1 or args.budget <= 0:
-        p.error("--window must be >= 0, --episodes >= 2, --workers >= 1, --budget > 0")
+    budgets = sorted(set(args.budget))
+    if (args.window < 0 or args.episodes < 2 or args.workers < 1
+            or not all(math.isfinite(b) and b > 0 for b in budgets)):
+        p.error("--window must be >= 0, --episodes >= 2, --workers >= 1, budgets > 0")
 
     from maipp_bench.algos.registry import get_method
     get_method(args.method)  # an unknown method fails here, before any worker starts
 
-    found = candidates(args.run, args.window)
+    found = (candidates(args.run, args.window) if args.run
+             else named(args.candidates))
     start = time.perf_counter()
     with ProcessPoolExecutor(args.workers, mp_context=get_context("spawn"),
                              initializer=_init_worker) as pool:
-        futures = [pool.submit(_score, str(path), args.method, args.budget, args.episodes)
-                   for _, path in found]
-        traces = [f.result() for f in futures]
+        futures = [[pool.submit(_traces, str(path), args.method, b, args.episodes)
+                    for b in budgets] for _, path in found]
+        traces = [[f.result() for f in per_budget] for per_budget in futures]
     seconds = time.perf_counter() - start
 
-    ref = traces[-1]  # the run's own end: what train_2h.sh without SELECT continues from
+    # The last candidate is the reference: with --run, the run's own end (what
+    # train_2h.sh without SELECT continues from); with --candidates, the file named last.
+    ref = traces[-1]
     table = []
-    for (update, path), trace in zip(found, traces):
-        diff, se = mean_se([t - r for t, r in zip(trace, ref)])
-        table.append({"update": update, "path": str(path), "mean": st.mean(trace),
-                      "minus_end": diff, "se": se})
-        print(f"update {update:4d}: Tr(P_f) {st.mean(trace):7.2f}  minus the end "
-              f"{diff:+6.2f} ± {se:.2f}  ({path})", file=sys.stderr, flush=True)
-    best = min(table, key=lambda row: (row["mean"], -row["update"]))
+    for i, ((update, path), per_budget) in enumerate(zip(found, traces)):
+        means = [st.mean(t) for t in per_budget]
+        row = {"update": update, "path": str(path), "mean": score(means)}
+        line = f"update {update:4d}: score {row['mean']:7.2f}"
+        for b, t, r in zip(budgets, per_budget, ref):
+            diff, se = mean_se([x - y for x, y in zip(t, r)])
+            suffix = "" if len(budgets) == 1 else f"_B{b:g}"
+            row |= {f"mean{suffix}": st.mean(t), f"minus_end{suffix}": diff, f"se{suffix}": se}
+            line += (f"  B = {b:g}: {st.mean(t):7.2f}, minus the last candidate "
+                     f"{diff:+6.2f} ± {se:.2f}")
+        row["position"] = i
+        table.append(row)
+        print(f"{line}  ({path})", file=sys.stderr, flush=True)
+    best = min(table, key=lambda row: (row["mean"], -row["position"]))
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps({
-            "method": args.method, "budget": args.budget, "episodes": args.episodes,
-            "window": args.window, "seconds": round(seconds, 1), "candidates": table,
-            "chosen": best}, indent=2) + "\n")
+            "method": args.method, "budget": budgets[0] if len(budgets) == 1 else budgets,
+            "episodes": args.episodes, "window": args.window if args.run else None,
+            "seconds": round(seconds, 1), "candidates": table, "chosen": best},
+            indent=2) + "\n")
     print(f"chosen: update {best['update']} in {seconds:.0f} s", file=sys.stderr)
     print(best["path"])
 

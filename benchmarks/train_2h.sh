@@ -21,7 +21,12 @@
 # allowance. The exported card's wall_s_with_init counts stage 2 up to the chosen update
 # only: the run's whole wall clock is in OUT_DIR/wall.txt, the choice's own seconds in
 # OUT_DIR/select.json.
-# Usage: [SELECT=1] [OVERRIDES="k=v ..."] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
+# With FINAL=1 (2026-11-27), the policy file is chosen after stage 3 on held-out episodes
+# at B = 4-5 between stage 3's start and avg.pt (benchmarks/final_choice.sh: OUT_DIR/
+# final.pt, final.json, final_select.json); its minutes (about 4 with 64 episodes,
+# FINAL_EPISODES) come out of the two hours too: SELECT=1's runs took 114-115 minutes,
+# so the default stage minutes stay.
+# Usage: [SELECT=1] [FINAL=1] [OVERRIDES="k=v ..."] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
 # OVERRIDES are Hydra overrides typed after each stage's own fields, so they win (e.g.
 # algo.precision=bf16; the tests' tiny task: env=tiny n_envs=3 ...); none by default.
 # They are split on spaces (no value with a space) and reach the three training stages,
@@ -33,10 +38,13 @@ set -euo pipefail
 OUT=${1:?usage: train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]}
 SEED=${2:-0}
 SELECT=${SELECT:-0}
+FINAL=${FINAL:-0}
 SELECT_WINDOW=${SELECT_WINDOW:-15}
 SELECT_EPISODES=${SELECT_EPISODES:-160}
 [[ $SELECT == 0 || $SELECT == 1 ]] \
     || { echo "train_2h.sh: SELECT must be 0 or 1, got '$SELECT'" >&2; exit 2; }
+[[ $FINAL == 0 || $FINAL == 1 ]] \
+    || { echo "train_2h.sh: FINAL must be 0 or 1, got '$FINAL'" >&2; exit 2; }
 if [[ $SELECT == 1 ]]; then D2=42 D3=28; else D2=37 D3=36; fi
 M1=${3:-38}
 M2=${4:-$D2}
@@ -88,4 +96,5 @@ python -m maipp_bench.train algo=ours resume="$OUT/stage3/checkpoint.pt" total_u
     threads=2 progress=false export="$OUT/avg.pt" export_from="5-$LAST" \
     hydra.run.dir="$OUT/export" \
     "export_note='benchmarks/train_2h.sh: the uniform average of every snapshot of stage 3 (updates 5-$LAST), $NOTE'"
+if [[ $FINAL == 1 ]]; then bash "$HERE/final_choice.sh" "$OUT"; fi
 echo "end $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"

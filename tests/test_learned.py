@@ -476,30 +476,32 @@ def test_training_scripts_reject_bad_arguments_before_training(script, args, mes
     assert not out.exists()
 
 
-def test_train_2h_rejects_a_bad_select_before_training(tmp_path):
+@pytest.mark.parametrize("variable", ["SELECT", "FINAL"])
+def test_train_2h_rejects_a_bad_switch_before_training(tmp_path, variable):
     out = tmp_path / "run"
     proc = subprocess.run(["bash", str(Path(__file__).parents[1] / "benchmarks" / "train_2h.sh"),
                            str(out)], capture_output=True, text=True, timeout=60,
-                          env={**os.environ, "SELECT": "yes"})
+                          env={**os.environ, variable: "yes"})
     assert proc.returncode == 2
-    assert "SELECT must be 0 or 1" in proc.stderr
+    assert f"{variable} must be 0 or 1" in proc.stderr
     assert not out.exists()
 
 
-def test_train_2h_runs_its_stages_and_the_choice_end_to_end(tmp_path):
-    """benchmarks/train_2h.sh with SELECT=1 on the tiny task (OVERRIDES, typed after the
-    script's own fields): three stages, the held-out choice, and the averaged policy file
-    whose card names the averaged snapshots, the chosen start and every stage's command."""
+def test_train_2h_runs_its_stages_and_the_choices_end_to_end(tmp_path):
+    """benchmarks/train_2h.sh with SELECT=1 and FINAL=1 on the tiny task (OVERRIDES, typed
+    after the script's own fields): three stages, the held-out choice of the start, the
+    averaged policy file whose card names the averaged snapshots, the chosen start and every
+    stage's command, and the final choice between the start and that file."""
     out = tmp_path / "run"
     tiny = [*TINY_TRAIN, "algo.intent_rollouts=2", "algo.intent_depth=2"]
     proc = subprocess.run(
         ["bash", str(Path(__file__).parents[1] / "benchmarks" / "train_2h.sh"), str(out), "3",
          "0.02", "0.1", "0.3"], capture_output=True, text=True, timeout=600,
-        env={**os.environ, "SELECT": "1", "SELECT_EPISODES": "2",
-             "OVERRIDES": " ".join(tiny)})
+        env={**os.environ, "SELECT": "1", "SELECT_EPISODES": "2", "FINAL": "1",
+             "FINAL_EPISODES": "2", "OVERRIDES": " ".join(tiny)})
     assert proc.returncode == 0, proc.stderr[-3000:]
     stamps = [line.split()[0] for line in (out / "wall.txt").read_text().splitlines()]
-    assert stamps == ["start", "stage1", "stage2", "selected", "end"]
+    assert stamps == ["start", "stage1", "stage2", "selected", "final", "end"]
     choice = json.loads((out / "select.json").read_text())
     assert choice["budget"] == 2.0 and choice["episodes"] == 2
     card = json.loads((out / "avg.json").read_text())
@@ -511,6 +513,16 @@ def test_train_2h_runs_its_stages_and_the_choice_end_to_end(tmp_path):
     assert "algo.lr=3e-5" in card["command"]
     core, _ = load_core(out / "avg.pt")
     assert core.net.cfg.embed_dim == 32
+
+    final = json.loads((out / "final_select.json").read_text())
+    assert final["budget"] == [4.0, 5.0] and final["episodes"] == 2
+    assert [Path(c["path"]).name for c in final["candidates"]] == ["start.pt", "avg.pt"]
+    for c in final["candidates"]:  # the score is the geometric mean of the two budgets'
+        assert c["mean"] == pytest.approx((c["mean_B4"] * c["mean_B5"]) ** 0.5)
+    assert final["chosen"] == min(final["candidates"][::-1], key=lambda c: c["mean"])
+    assert (out / "final.pt").read_bytes() == Path(final["chosen"]["path"]).read_bytes()
+    start = json.loads((out / "start.json").read_text())
+    assert start["selected_update"] == choice["chosen"]["update"]
 
 
 def test_select_snapshot_scores_the_window_and_picks_the_lowest(tiny_checkpoint, tmp_path):
@@ -543,6 +555,15 @@ def test_select_snapshot_scores_the_window_and_picks_the_lowest(tiny_checkpoint,
     missing = subprocess.run([sys.executable, str(script), "--run", str(tmp_path / "none")],
                              capture_output=True, text=True, timeout=120)
     assert missing.returncode != 0 and "no training checkpoint" in missing.stderr
+    absent = subprocess.run([sys.executable, str(script), "--candidates",
+                             str(run / "checkpoint.pt"), str(tmp_path / "none.pt")],
+                            capture_output=True, text=True, timeout=120)
+    assert absent.returncode != 0 and "no such file" in absent.stderr
+    assert str(tmp_path / "none.pt") in absent.stderr
+    both = subprocess.run([sys.executable, str(script), "--run", str(run), "--candidates",
+                           str(run / "checkpoint.pt")], capture_output=True, text=True,
+                          timeout=120)
+    assert both.returncode == 2 and "not allowed with argument" in both.stderr
 
 
 def test_paired_subset_leaves_out_excluded_episodes_and_names_the_worst(tmp_path):

@@ -1,0 +1,41 @@
+#!/usr/bin/env bash
+# FINAL=1 of benchmarks/train_2h.sh (2026-11-27; docs/results.md, "The final choice"): the
+# run's policy file is chosen on held-out episodes at B = 4 and 5 (training's held-out
+# seeds, never the protocol's) between two candidates, instead of being stage 3's uniform
+# average by rule:
+#   start.pt  stage 3's own start (the stage-2 update it fine-tuned): stage 3 lost ground
+#             at B = 4-5 in one of the four bf16 draws scored against their start;
+#   avg.pt    the uniform average of all of stage 3's snapshots (train_2h.sh's output),
+#             the reference, which wins ties.
+# B = 4-5 because that is where draws fall behind catnipp_ti; the score is the geometric
+# mean over the two budgets of the mean Tr(P_f) (benchmarks/select_snapshot.py). Two
+# candidates x 2 budgets x 64 episodes take about 4 minutes on the two cores. The
+# chosen file and its card are copied to OUT_DIR/final.pt / final.json; the scores, with
+# the choice's seconds, go to OUT_DIR/final_select.json. Runs on a finished train_2h.sh
+# output too (the run's training is not touched), so that older draws can be re-scored.
+# Usage: [FINAL_EPISODES=64] bash benchmarks/final_choice.sh OUT_DIR
+set -euo pipefail
+OUT=${1:?usage: final_choice.sh OUT_DIR}
+EPISODES=${FINAL_EPISODES:-64}
+HERE=$(dirname "$0")
+[[ -f $OUT/avg.json && -d $OUT/stage3/snapshots ]] \
+    || { echo "final_choice.sh: $OUT is not a finished train_2h.sh run (no avg.json)" >&2; exit 2; }
+# Stage 3's start, as its card records it.
+START=$(python -c 'import json, sys; print(json.load(open(sys.argv[1]))["init"]["path"])' \
+    "$OUT/avg.json")
+# The start as a policy file with its card: a snapshot of stage 2, or its last update.
+if [[ $START =~ ^(.*)/snapshots/update_0*([0-9]+)\.pt$ ]]; then
+    RUN2=${BASH_REMATCH[1]} FROM=${BASH_REMATCH[2]}
+else
+    RUN2=$(dirname "$START") FROM=last
+fi
+EXPORT="python -m maipp_bench.train algo=ours total_updates=0 threads=2 progress=false"
+$EXPORT resume="$RUN2/checkpoint.pt" \
+    export="$OUT/start.pt" export_from="$FROM" hydra.run.dir="$OUT/export_start" \
+    "export_note='benchmarks/final_choice.sh: stage 3 of $OUT started from this network'"
+CHOSEN=$(python "$HERE/select_snapshot.py" --candidates "$OUT/start.pt" "$OUT/avg.pt" \
+    --method ours_ti --budget 4 5 --episodes "$EPISODES" --workers 2 \
+    --out "$OUT/final_select.json" | tail -1)
+cp "$CHOSEN" "$OUT/final.pt"
+cp "${CHOSEN%.pt}.json" "$OUT/final.json"
+echo "final $CHOSEN $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
