@@ -23,6 +23,8 @@ HERE=$(dirname "$0")
 # Stage 3's start, as its card records it.
 START=$(python -c 'import json, sys; print(json.load(open(sys.argv[1]))["init"]["path"])' \
     "$OUT/avg.json")
+[[ -f $START ]] || { echo "final_choice.sh: stage 3's start $START (as $OUT/avg.json records it) is not" \
+    "there; run from the folder train_2h.sh ran in" >&2; exit 2; }
 # The start as a policy file with its card: a snapshot of stage 2, or its last update.
 if [[ $START =~ ^(.*)/snapshots/update_0*([0-9]+)\.pt$ ]]; then
     RUN2=${BASH_REMATCH[1]} FROM=${BASH_REMATCH[2]}

@@ -525,6 +525,22 @@ def test_train_2h_runs_its_stages_and_the_choices_end_to_end(tmp_path):
     assert start["selected_update"] == choice["chosen"]["update"]
 
 
+def test_final_choice_refuses_a_run_it_cannot_read(tmp_path):
+    """benchmarks/final_choice.sh: an unfinished run, or one whose card names a start that
+    is not there (another working folder), is a clear error before any export."""
+    script = Path(__file__).parents[1] / "benchmarks" / "final_choice.sh"
+    run = tmp_path / "run"
+    (run / "stage3" / "snapshots").mkdir(parents=True)
+    proc = subprocess.run(["bash", str(script), str(run)], capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 2 and "not a finished train_2h.sh run" in proc.stderr
+    (run / "avg.json").write_text(json.dumps({"init": {"path": "elsewhere/checkpoint.pt"}}))
+    proc = subprocess.run(["bash", str(script), str(run)], capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 2 and "elsewhere/checkpoint.pt" in proc.stderr
+    assert not (run / "start.pt").exists()
+
+
 def test_select_snapshot_scores_the_window_and_picks_the_lowest(tiny_checkpoint, tmp_path):
     """benchmarks/select_snapshot.py (train_2h.sh's SELECT=1): the candidates are the run's
     end and its snapshots inside the window; the choice is the lowest mean Tr(P_f)."""
