@@ -7,21 +7,25 @@
 #             at B = 4-5 in one of the four bf16 draws scored against their start;
 #   avg.pt    the uniform average of all of stage 3's snapshots (train_2h.sh's output),
 #             the reference, which wins ties.
-# B = 4-5 because that is where draws fall behind catnipp_ti; the score is the geometric
-# mean over the two budgets of the mean Tr(P_f) (benchmarks/select_snapshot.py). Two
+# B = 4-5 because B = 5 is where most draws trail or tie catnipp_ti and where stage 3
+# moved the scores most; the score is the geometric mean over the two budgets of the mean
+# Tr(P_f) (benchmarks/select_snapshot.py). The episodes are held-out seeds 160-223 (from
+# FINAL_FIRST): SELECT=1 chose the start on seeds 0-159, which would favour it. Two
 # candidates x 2 budgets x 64 episodes take about 4 minutes on the two cores. The
 # chosen file and its card are copied to OUT_DIR/final.pt / final.json; the scores, with
 # the choice's seconds, go to OUT_DIR/final_select.json. Runs on a finished train_2h.sh
 # output too (the run's training is not touched), so that older draws can be re-scored.
-# Usage: [FINAL_EPISODES=64] bash benchmarks/final_choice.sh OUT_DIR
+# Run from the folder train_2h.sh ran in (the card's paths are relative to it).
+# Usage: [FINAL_EPISODES=64] [FINAL_FIRST=160] bash benchmarks/final_choice.sh OUT_DIR
 set -euo pipefail
 OUT=${1:?usage: final_choice.sh OUT_DIR}
 EPISODES=${FINAL_EPISODES:-64}
+FIRST=${FINAL_FIRST:-160}
 HERE=$(dirname "$0")
 [[ -f $OUT/avg.json && -d $OUT/stage3/snapshots ]] \
-    || { echo "final_choice.sh: $OUT is not a finished train_2h.sh run (no avg.json)" >&2; exit 2; }
+    || { echo "final_choice.sh: $OUT is not a finished train_2h.sh run (no avg.json or stage3/snapshots/)" >&2; exit 2; }
 # Stage 3's start, as its card records it.
-START=$(python -c 'import json, sys; print(json.load(open(sys.argv[1]))["init"]["path"])' \
+START=$(python -c 'import json, sys; print(json.load(open(sys.argv[1])).get("init", {}).get("path", ""))' \
     "$OUT/avg.json")
 [[ -f $START ]] || { echo "final_choice.sh: stage 3's start $START (as $OUT/avg.json records it) is not" \
     "there; run from the folder train_2h.sh ran in" >&2; exit 2; }
@@ -36,7 +40,7 @@ $EXPORT resume="$RUN2/checkpoint.pt" \
     export="$OUT/start.pt" export_from="$FROM" hydra.run.dir="$OUT/export_start" \
     "export_note='benchmarks/final_choice.sh: stage 3 of $OUT started from this network'"
 CHOSEN=$(python "$HERE/select_snapshot.py" --candidates "$OUT/start.pt" "$OUT/avg.pt" \
-    --method ours_ti --budget 4 5 --episodes "$EPISODES" --workers 2 \
+    --method ours_ti --budget 4 5 --episodes "$EPISODES" --first "$FIRST" --workers 2 \
     --out "$OUT/final_select.json" | tail -1)
 cp "$CHOSEN" "$OUT/final.pt"
 cp "${CHOSEN%.pt}.json" "$OUT/final.json"

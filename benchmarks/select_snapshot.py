@@ -3,21 +3,23 @@
 ``FINAL=1`` ("The final choice").
 
 Every candidate plays ``--method`` on the same ``--episodes`` held-out episodes (training's
-held-out seeds, never the protocol's) at each ``--budget``; the one with the lowest score
-is chosen, ties going to the later candidate. The score is the mean Tr(P_f) at one
-budget, the geometric mean over budgets of it at several (as training's ``eval/trace``).
-The candidates are either ``--run``'s own ``checkpoint.pt`` and the snapshots of its
-``snapshots/`` from update ``last - window`` on (oldest first), or the files named by
-``--candidates`` in the order given; the last candidate is the reference that the table's
-paired differences are taken against. Candidates are scored in ``--workers`` processes of
-one thread each. The table goes to stderr and, with the choice, to ``--out`` as JSON;
-stdout is the chosen path alone.
+held-out seeds from the ``--first``-th on, never the protocol's) at each ``--budget``; the
+one with the lowest score is chosen, ties going to the later candidate. The score is the
+mean Tr(P_f) at one budget and, at several budgets, the geometric mean of their means
+(training's ``eval/trace``). The candidates are either ``--run``'s own ``checkpoint.pt``
+and the snapshots of its ``snapshots/`` from update ``last - window`` on (oldest first),
+or the files named by ``--candidates`` in the order given; the last candidate is the
+reference that the table's paired differences are taken against. Candidates are scored
+in ``--workers`` processes of one thread each. The table goes to stderr and, with the
+choice, to ``--out`` as JSON (each candidate's ``mean`` is its score; with several
+budgets, ``mean_B<b>``, ``minus_end_B<b>`` and ``se_B<b>`` per budget); stdout is the
+chosen path alone.
 
 Usage:
     python benchmarks/select_snapshot.py --run outputs/h9/stage2 --window 15 \\
         --budget 2 --episodes 160 --workers 2 --out outputs/h9/select.json
     python benchmarks/select_snapshot.py --candidates start.pt late.pt avg.pt \\
-        --budget 4 5 --episodes 64 --workers 2 --out final_select.json
+        --budget 4 5 --episodes 64 --first 160 --workers 2 --out final_select.json
 """
 
 from __future__ import annotations
@@ -58,24 +60,16 @@ def named(paths: list[Path]) -> list[tuple[int, Path]]:
     missing = [str(p) for p in paths if not p.exists()]
     if missing:
         raise FileNotFoundError(f"--candidates: no such file: {', '.join(missing)}")
-    return [(int(torch.load(p, map_location="cpu", weights_only=False)["update"]), p)
+    return [(int(torch.load(p, map_location="cpu", weights_only=False).get("update", -1)), p)
             for p in paths]
-
-
-def score(per_budget: list[float]) -> float:
-    """One budget's mean, or the geometric mean of several (training's ``eval/trace``)."""
-    if len(per_budget) == 1:
-        return per_budget[0]
-    if min(per_budget) <= 0:
-        return 0.0
-    return math.exp(sum(math.log(v) for v in per_budget) / len(per_budget))
 
 
 def _init_worker() -> None:
     torch.set_num_threads(1)
 
 
-def _traces(path: str, method: str, budget: float, episodes: int) -> list[float]:
+def _traces(path: str, method: str, budget: float, episodes: int, first: int
+            ) -> list[float]:
     """Tr(P_f) of each held-out episode for ``method`` played with ``path``'s network."""
     from maipp_bench.algos.checkpoint import load_core
     from maipp_bench.algos.registry import get_method
@@ -84,7 +78,7 @@ def _traces(path: str, method: str, budget: float, episodes: int) -> list[float]
 
     core, payload = load_core(path)
     rows = heldout_rows(core, MAIPPConfig.from_dict(payload["env"]), episodes, budget,
-                        get_method(method))
+                        get_method(method), first=first)
     return [r["trace"] for r in rows]
 
 
@@ -100,23 +94,28 @@ def main() -> None:
     p.add_argument("--budget", type=float, nargs="+", default=[2.0],
                    help="one or more budgets (several: geometric mean of the means)")
     p.add_argument("--episodes", type=int, default=160)
+    p.add_argument("--first", type=int, default=0, metavar="N",
+                   help="start at the N-th held-out seed (e.g. after those of an earlier "
+                        "choice, so that the two choices see different worlds)")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", type=Path, help="write the scores and the choice here (JSON)")
     args = p.parse_args()
     budgets = sorted(set(args.budget))
-    if (args.window < 0 or args.episodes < 2 or args.workers < 1
+    if (args.window < 0 or args.episodes < 2 or args.workers < 1 or args.first < 0
             or not all(math.isfinite(b) and b > 0 for b in budgets)):
-        p.error("--window must be >= 0, --episodes >= 2, --workers >= 1, budgets > 0")
+        p.error("--window must be >= 0, --episodes >= 2, --workers >= 1, --first >= 0, "
+                "budgets > 0")
 
     from maipp_bench.algos.registry import get_method
+    from maipp_bench.train import trace_score
     get_method(args.method)  # an unknown method fails here, before any worker starts
 
-    found = (candidates(args.run, args.window) if args.run
+    found = (candidates(args.run, args.window) if args.run is not None
              else named(args.candidates))
     start = time.perf_counter()
     with ProcessPoolExecutor(args.workers, mp_context=get_context("spawn"),
                              initializer=_init_worker) as pool:
-        futures = [[pool.submit(_traces, str(path), args.method, b, args.episodes)
+        futures = [[pool.submit(_traces, str(path), args.method, b, args.episodes, args.first)
                     for b in budgets] for _, path in found]
         traces = [[f.result() for f in per_budget] for per_budget in futures]
     seconds = time.perf_counter() - start
@@ -127,7 +126,7 @@ def main() -> None:
     table = []
     for i, ((update, path), per_budget) in enumerate(zip(found, traces)):
         means = [st.mean(t) for t in per_budget]
-        row = {"update": update, "path": str(path), "mean": score(means)}
+        row = {"update": update, "path": str(path), "mean": trace_score(means)}
         line = f"update {update:4d}: score {row['mean']:7.2f}"
         for b, t, r in zip(budgets, per_budget, ref):
             diff, se = mean_se([x - y for x, y in zip(t, r)])
@@ -143,10 +142,12 @@ def main() -> None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps({
             "method": args.method, "budget": budgets[0] if len(budgets) == 1 else budgets,
-            "episodes": args.episodes, "window": args.window if args.run else None,
+            "episodes": args.episodes, "first": args.first,
+            "window": args.window if args.run is not None else None,
             "seconds": round(seconds, 1), "candidates": table, "chosen": best},
             indent=2) + "\n")
-    print(f"chosen: update {best['update']} in {seconds:.0f} s", file=sys.stderr)
+    print(f"chosen: {best['path']} (update {best['update']}) in {seconds:.0f} s",
+          file=sys.stderr)
     print(best["path"])
 
 

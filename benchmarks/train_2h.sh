@@ -8,8 +8,8 @@
 #            paper's TI(8, 5) intents in collection, snapshots kept every 5 updates; the
 #            policy file is the uniform average of all of them (export_from=5-<last>).
 # Stage limits are minutes of update time (train's max_minutes); no stage evaluates on
-# held-out episodes; saves and start-up (and SELECT=1's choice) come on top, so the limits
-# sum to less than 120.
+# held-out episodes; saves and start-up (and the SELECT=1 / FINAL=1 choices) come on
+# top, so the limits sum to less than 120.
 # With SELECT=1 (2026-11-26, later), stage 2 keeps a snapshot every 3 updates and stage 3
 # starts from the best of stage 2's last ones (its final update and the snapshots of the
 # SELECT_WINDOW updates before it) on held-out episodes at B = 2 (training's held-out
@@ -24,8 +24,8 @@
 # With FINAL=1 (2026-11-27), the policy file is chosen after stage 3 on held-out episodes
 # at B = 4-5 between stage 3's start and avg.pt (benchmarks/final_choice.sh: OUT_DIR/
 # final.pt, final.json, final_select.json); its minutes (about 4 with 64 episodes,
-# FINAL_EPISODES) come out of the two hours too: SELECT=1's runs took 114-115 minutes,
-# so the default stage minutes stay.
+# FINAL_EPISODES) come out of the two hours too: SELECT=1's float32 runs took 116-117
+# minutes (bf16 114-115), so with both the default stage 3 is 26 minutes, not 28.
 # Usage: [SELECT=1] [FINAL=1] [OVERRIDES="k=v ..."] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
 # OVERRIDES are Hydra overrides typed after each stage's own fields, so they win (e.g.
 # algo.precision=bf16; the tests' tiny task: env=tiny n_envs=3 ...); none by default.
@@ -45,7 +45,11 @@ SELECT_EPISODES=${SELECT_EPISODES:-160}
     || { echo "train_2h.sh: SELECT must be 0 or 1, got '$SELECT'" >&2; exit 2; }
 [[ $FINAL == 0 || $FINAL == 1 ]] \
     || { echo "train_2h.sh: FINAL must be 0 or 1, got '$FINAL'" >&2; exit 2; }
-if [[ $SELECT == 1 ]]; then D2=42 D3=28; else D2=37 D3=36; fi
+if [[ $SELECT == 1 ]]; then D2=42 D3=$((FINAL == 1 ? 26 : 28)); else D2=37 D3=36; fi
+for n in "$SELECT_EPISODES" "${FINAL_EPISODES:-64}"; do  # not found out after two hours
+    [[ $n =~ ^[0-9]+$ ]] && ((n >= 2)) \
+        || { echo "train_2h.sh: SELECT_EPISODES and FINAL_EPISODES must be integers >= 2, got '$n'" >&2; exit 2; }
+done
 M1=${3:-38}
 M2=${4:-$D2}
 M3=${5:-$D3}
@@ -96,5 +100,7 @@ python -m maipp_bench.train algo=ours resume="$OUT/stage3/checkpoint.pt" total_u
     threads=2 progress=false export="$OUT/avg.pt" export_from="5-$LAST" \
     hydra.run.dir="$OUT/export" \
     "export_note='benchmarks/train_2h.sh: the uniform average of every snapshot of stage 3 (updates 5-$LAST), $NOTE'"
-if [[ $FINAL == 1 ]]; then bash "$HERE/final_choice.sh" "$OUT"; fi
+if [[ $FINAL == 1 ]]; then  # on held-out worlds after those SELECT=1 chose the start on
+    FINAL_FIRST=${FINAL_FIRST:-$SELECT_EPISODES} bash "$HERE/final_choice.sh" "$OUT"
+fi
 echo "end $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"

@@ -317,11 +317,21 @@ def row_tag(row: dict[str, Any], state: dict[str, Any]) -> str:
     return row.get("eval/tag", _tag("greedy", [float(budget)]))
 
 
+def trace_score(per_budget: list[float]) -> float:
+    """The held-out selection score: one budget's mean Tr(P_f), or the geometric mean of
+    several budgets' means (so that no budget's scale outweighs another's)."""
+    if len(per_budget) == 1:
+        return per_budget[0]
+    if min(per_budget) <= 0:
+        return 0.0
+    return math.exp(sum(math.log(v) for v in per_budget) / len(per_budget))
+
+
 def evaluate(learner: Learner, env_cfg: MAIPPConfig, cfg: Any) -> dict[str, Any]:
     """``eval_method`` on held-out seeds (never the protocol's) at each evaluation budget.
 
-    ``eval/trace`` (the selection score) is the mean Tr(P_f) at one budget, the geometric
-    mean over budgets of it at several; ``eval/trace_B<b>`` each budget's mean."""
+    ``eval/trace`` is the selection score (:func:`trace_score`) of the budgets' mean
+    Tr(P_f); ``eval/trace_B<b>`` each budget's mean at several."""
     spec, budgets = eval_spec(cfg)
     out: dict[str, Any] = {}
     per_budget, rows = [], []
@@ -332,8 +342,7 @@ def evaluate(learner: Learner, env_cfg: MAIPPConfig, cfg: Any) -> dict[str, Any]
         rows += chunk
         if len(budgets) > 1:
             out[f"eval/trace_B{budget:g}"] = per_budget[-1]
-    out["eval/trace"] = (per_budget[0] if len(per_budget) == 1 else 0.0 if min(per_budget) <= 0
-                         else math.exp(sum(math.log(v) for v in per_budget) / len(per_budget)))
+    out["eval/trace"] = trace_score(per_budget)
     out.update({f"eval/{k}": sum(r[k] for r in rows) / len(rows) for k in ("rmse", "traps")})
     out["eval/tag"] = _tag(cfg.eval_method, budgets)
     return out

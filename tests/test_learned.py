@@ -476,14 +476,17 @@ def test_training_scripts_reject_bad_arguments_before_training(script, args, mes
     assert not out.exists()
 
 
-@pytest.mark.parametrize("variable", ["SELECT", "FINAL"])
-def test_train_2h_rejects_a_bad_switch_before_training(tmp_path, variable):
+@pytest.mark.parametrize(("variable", "value", "message"), [
+    ("SELECT", "yes", "SELECT must be 0 or 1"), ("FINAL", "yes", "FINAL must be 0 or 1"),
+    ("FINAL_EPISODES", "1", "must be integers >= 2, got '1'"),
+    ("SELECT_EPISODES", "many", "must be integers >= 2, got 'many'")])
+def test_train_2h_rejects_a_bad_switch_before_training(tmp_path, variable, value, message):
     out = tmp_path / "run"
     proc = subprocess.run(["bash", str(Path(__file__).parents[1] / "benchmarks" / "train_2h.sh"),
                            str(out)], capture_output=True, text=True, timeout=60,
-                          env={**os.environ, variable: "yes"})
+                          env={**os.environ, variable: value})
     assert proc.returncode == 2
-    assert f"{variable} must be 0 or 1" in proc.stderr
+    assert message in proc.stderr
     assert not out.exists()
 
 
@@ -520,7 +523,10 @@ def test_train_2h_runs_its_stages_and_the_choices_end_to_end(tmp_path):
     for c in final["candidates"]:  # the score is the geometric mean of the two budgets'
         assert c["mean"] == pytest.approx((c["mean_B4"] * c["mean_B5"]) ** 0.5)
     assert final["chosen"] == min(final["candidates"][::-1], key=lambda c: c["mean"])
-    assert (out / "final.pt").read_bytes() == Path(final["chosen"]["path"]).read_bytes()
+    chosen = Path(final["chosen"]["path"])
+    assert (out / "final.pt").read_bytes() == chosen.read_bytes()
+    assert (out / "final.json").read_text() == chosen.with_suffix(".json").read_text()
+    assert final["first"] == 2  # after the SELECT_EPISODES worlds the start was chosen on
     start = json.loads((out / "start.json").read_text())
     assert start["selected_update"] == choice["chosen"]["update"]
 
@@ -539,6 +545,38 @@ def test_final_choice_refuses_a_run_it_cannot_read(tmp_path):
                           timeout=60)
     assert proc.returncode == 2 and "elsewhere/checkpoint.pt" in proc.stderr
     assert not (run / "start.pt").exists()
+
+
+def test_final_choice_exports_a_stage2_snapshot_start(tmp_path):
+    """benchmarks/final_choice.sh on a hand-built run whose stage 3 started from a kept
+    stage-2 snapshot (SELECT=1's usual case): start.pt is that snapshot's network, with
+    its card, and final.pt / final.json are the chosen candidate's."""
+    from maipp_bench.train import train
+
+    run = tmp_path / "run"
+    stage2 = run / "stage2"
+    threads = torch.get_num_threads()  # train() sets its own
+    train(compose_train(*TINY_TRAIN, "total_updates=2", "keep_snapshots=true",
+                        "snapshot_every=1"), stage2)
+    torch.set_num_threads(threads)
+    (run / "stage3" / "snapshots").mkdir(parents=True)
+    shutil.copy(stage2 / "checkpoint.pt", run / "avg.pt")
+    start = stage2 / "snapshots" / "update_0001.pt"
+    (run / "avg.json").write_text(json.dumps({"init": {"path": str(start)}}))
+    script = Path(__file__).parents[1] / "benchmarks" / "final_choice.sh"
+    proc = subprocess.run(["bash", str(script), str(run)], capture_output=True, text=True,
+                          timeout=600, env={**os.environ, "FINAL_EPISODES": "2"})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    card = json.loads((run / "start.json").read_text())
+    assert card["selected_update"] == 1 and "stage 3 of" in card["selected_by"]
+    theirs = torch.load(start, weights_only=False)["core"]
+    ours = torch.load(run / "start.pt", weights_only=False)["core"]
+    assert all(torch.equal(ours[k], theirs[k]) for k in theirs)
+    final = json.loads((run / "final_select.json").read_text())
+    assert final["first"] == 160 and final["episodes"] == 2
+    chosen = Path(final["chosen"]["path"])
+    assert (run / "final.pt").read_bytes() == chosen.read_bytes()
+    assert (run / "final.json").read_text() == chosen.with_suffix(".json").read_text()
 
 
 def test_select_snapshot_scores_the_window_and_picks_the_lowest(tiny_checkpoint, tmp_path):
@@ -580,6 +618,18 @@ def test_select_snapshot_scores_the_window_and_picks_the_lowest(tiny_checkpoint,
                            str(run / "checkpoint.pt")], capture_output=True, text=True,
                           timeout=120)
     assert both.returncode == 2 and "not allowed with argument" in both.stderr
+    # --candidates at two budgets: equal scores go to the later file
+    shutil.copy(run / "checkpoint.pt", tmp_path / "copy.pt")
+    tie = subprocess.run([sys.executable, str(script), "--candidates",
+                          str(run / "checkpoint.pt"), str(tmp_path / "copy.pt"), "--budget",
+                          "4", "5", "--episodes", "2", "--first", "7", "--workers", "1",
+                          "--out", str(out)], capture_output=True, text=True, timeout=300)
+    assert tie.returncode == 0, tie.stderr
+    result = json.loads(out.read_text())
+    assert result["first"] == 7 and result["budget"] == [4.0, 5.0]
+    first, copy_ = result["candidates"]
+    assert first["mean"] == copy_["mean"] and copy_["minus_end_B5"] == 0.0
+    assert result["chosen"]["path"] == tie.stdout.strip() == str(tmp_path / "copy.pt")
 
 
 def test_paired_subset_leaves_out_excluded_episodes_and_names_the_worst(tmp_path):
