@@ -128,11 +128,11 @@ def main() -> None:
         means = [st.mean(t) for t in per_budget]
         row = {"update": update, "path": str(path), "mean": trace_score(means)}
         line = f"update {update:4d}: score {row['mean']:7.2f}"
-        for b, t, r in zip(budgets, per_budget, ref):
+        for b, mean, t, r in zip(budgets, means, per_budget, ref):
             diff, se = mean_se([x - y for x, y in zip(t, r)])
             suffix = "" if len(budgets) == 1 else f"_B{b:g}"
-            row |= {f"mean{suffix}": st.mean(t), f"minus_end{suffix}": diff, f"se{suffix}": se}
-            line += (f"  B = {b:g}: {st.mean(t):7.2f}, minus the last candidate "
+            row |= {f"mean{suffix}": mean, f"minus_end{suffix}": diff, f"se{suffix}": se}
+            line += (f"  B = {b:g}: {mean:7.2f}, minus the last candidate "
                      f"{diff:+6.2f} ± {se:.2f}")
         row["position"] = i
         table.append(row)
