@@ -200,7 +200,10 @@ def make_collection(cfg: Any, env_cfg: MAIPPConfig, learner: Learner
                               algo.intent_depth) if algo.intent_rollouts != 0 else None)
     policy = TeamPolicy(learner.actor, learner.critic, learner.core.hidden_dim, intent)
     collector = Collector(env, policy, frames_per_batch=cfg.n_envs * cfg.steps_per_batch,
-                          total_frames=-1, auto_register_policy_transforms=False)
+                          total_frames=-1, auto_register_policy_transforms=False,
+                          # each batch is read within its update only (decision rows and
+                          # metrics are indexed copies): no clone of the whole rollout
+                          return_same_td=True)
     buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.n_envs * cfg.steps_per_batch
                                                     * env_cfg.n_agents, device=cfg.device),
                           sampler=SamplerWithoutReplacement(), batch_size=cfg.algo.minibatch)

@@ -113,6 +113,27 @@ def test_row_attention_is_the_layers_own(dtype, tol):
         torch.testing.assert_close(got, want, rtol=grad_tol, atol=grad_tol)
 
 
+def test_row_attention_under_bf16_autocast_is_the_layers_within_rounding():
+    # algo.precision=bf16 runs it under autocast, where the key/value bias is added in
+    # the product's bf16: close to the layer's own bf16 output and to float32's, with
+    # gradients that still reach the bias.
+    torch.manual_seed(0)
+    attn = nn.MultiheadAttention(128, 4, batch_first=True)
+    with torch.no_grad():
+        attn.in_proj_bias.normal_()  # a bias large enough to matter
+    q, kv = torch.randn(6, 9, 128), torch.randn(6, 41, 128)
+    exact = attn(q, kv, kv, need_weights=False)[0]
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = attend_rows(attn, q, kv)
+        ref = attn(q, kv, kv, need_weights=False)[0]
+    assert out.dtype == torch.bfloat16
+    for got in (out, ref):
+        rel = ((got.float() - exact).norm() / exact.norm()).item()
+        assert 0 < rel < 2e-2
+    (grad,) = torch.autograd.grad(out.float().sum(), attn.in_proj_bias)
+    assert grad[128:].abs().sum() > 0  # the value bias moves the output
+
+
 @pytest.mark.parametrize("layer", [dict(batch_first=False), dict(bias=False),
                                    dict(add_bias_kv=True), dict(add_zero_attn=True),
                                    dict(kdim=64, vdim=64), dict(dropout=0.1)])
