@@ -1,19 +1,21 @@
 #!/usr/bin/env bash
 # The CUDA figures of docs/performance.md, in one call on a GPU machine:
 #   bash benchmarks/cuda_figures.sh OUT_DIR [SECTION ...]
-# Sections (default: all): check, env32, env64, profile, train. Each writes JSON and a log to OUT_DIR; a
+# Sections (default: all): check, env32, env64, profile, train, precision. Each writes JSON and a log to OUT_DIR; a
 # section that fails is reported and the next one still runs.
 # - check: the CUDA tests (`pytest -m cuda`: the env, every method, training on CUDA).
 # - env32, env64: benchmarks/env_throughput.py on CUDA in float32 / float64, for each E
 #   of $ENVS (default 1024 4096 16384 32768).
 # - profile: benchmarks/cuda_profile.py at E = 16384.
 # - train: benchmarks/train_throughput.py on CUDA: ours at 64 and 256 envs, mappo at 64.
+# - precision: the update of benchmarks/train_gpu.sh (ours, 16 envs, TI(8, 5) intents in
+#   collection) in float32 and in bf16 (algo.precision), side by side, and their ratio.
 # Needs maipp_bench's dependencies importable (on a machine without network, install
 # wheels first: docs/performance.md gives the command used).
 set -u
 out=${1:?usage: cuda_figures.sh OUT_DIR [SECTION ...]}
 shift
-sections=${*:-check env32 env64 profile train}
+sections=${*:-check env32 env64 profile train precision}
 mkdir -p "$out"
 export PYTHONUNBUFFERED=1
 py=${PYTHON:-python3}
@@ -54,6 +56,14 @@ for s in $sections; do
             run "train_$1_$2" $py benchmarks/train_throughput.py algo=$1 device=cuda \
                 n_envs=$2 --updates $3 --out "$out/train_$1_$2.json"
         done ;;
+    precision)
+        for p in float32 bf16; do
+            run "train_ours_16_$p" $py benchmarks/train_throughput.py algo=ours device=cuda \
+                threads=1 n_envs=16 algo.intent_rollouts=8 algo.intent_depth=5 \
+                algo.precision=$p --updates 2 --out "$out/train_ours_16_$p.json"
+        done
+        run precision_ratio $py benchmarks/train_throughput.py \
+            --ratio "$out/train_ours_16_float32.json" "$out/train_ours_16_bf16.json" ;;
     *) echo "unknown section $s" ;;
     esac
 done

@@ -960,17 +960,21 @@ def test_eval_tag_names_what_a_score_measures():
 
 
 @pytest.mark.cuda
-@pytest.mark.parametrize("algo", ["ours", "catnipp", "mappo"])
-def test_training_and_ti_run_on_cuda(algo, tmp_path):
+@pytest.mark.parametrize("algo,precision", [("ours", "float32"), ("catnipp", "float32"),
+                                            ("mappo", "float32"), ("ours", "bf16"),
+                                            ("mappo", "bf16")])
+def test_training_and_ti_run_on_cuda(algo, precision, tmp_path):
     """One update on CUDA (collector, loss, held-out evaluation, checkpoint), then the
-    trained network plays TI episodes there: finite losses, valid episodes."""
+    trained network plays TI episodes there: finite losses, valid episodes; bf16 autocasts
+    on the CUDA device (algo.precision)."""
     if not torch.cuda.is_available():
         pytest.skip("CUDA is not available")
     from maipp_bench.train import train
 
     intents = ["algo.intent_rollouts=2", "algo.intent_depth=2"] if algo == "ours" else []
     path = train(compose_train(*TINY_TRAIN, f"algo={algo}", "total_updates=1", "device=cuda",
-                               "eval_every=1", "eval_episodes=2", *intents), tmp_path)
+                               "eval_every=1", "eval_episodes=2", f"algo.precision={precision}",
+                               *intents), tmp_path)
     row = torch.load(path, weights_only=False, map_location="cpu")["curve"][0]
     assert np.isfinite(row["loss_objective"]) and np.isfinite(row["loss_critic"])
     assert 0 < row["eval/trace"] <= 900
