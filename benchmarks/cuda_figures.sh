@@ -57,6 +57,7 @@ for s in $sections; do
                 n_envs=$2 --updates $3 --out "$out/train_$1_$2.json"
         done ;;
     precision)
+        rm -f "$out"/train_ours_16_{float32,bf16}.json  # no ratio from an earlier call's files
         for p in float32 bf16; do
             run "train_ours_16_$p" $py benchmarks/train_throughput.py algo=ours device=cuda \
                 threads=1 n_envs=16 algo.intent_rollouts=8 algo.intent_depth=5 \

@@ -131,7 +131,7 @@ def test_row_attention_under_bf16_autocast_is_the_layers_within_rounding():
         rel = ((got.float() - exact).norm() / exact.norm()).item()
         assert 0 < rel < 2e-2
     (grad,) = torch.autograd.grad(out.float().sum(), attn.in_proj_bias)
-    assert grad[128:].abs().sum() > 0  # the value bias moves the output
+    assert grad[256:].abs().sum() > 0  # the value bias moves the output (keys' cannot)
 
 
 @pytest.mark.parametrize("layer", [dict(batch_first=False), dict(bias=False),

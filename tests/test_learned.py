@@ -962,7 +962,7 @@ def test_eval_tag_names_what_a_score_measures():
 @pytest.mark.cuda
 @pytest.mark.parametrize("algo,precision", [("ours", "float32"), ("catnipp", "float32"),
                                             ("mappo", "float32"), ("ours", "bf16"),
-                                            ("mappo", "bf16")])
+                                            ("catnipp", "bf16"), ("mappo", "bf16")])
 def test_training_and_ti_run_on_cuda(algo, precision, tmp_path):
     """One update on CUDA (collector, loss, held-out evaluation, checkpoint), then the
     trained network plays TI episodes there: finite losses, valid episodes; bf16 autocasts
