@@ -1,0 +1,163 @@
+"""Does anything early in a two-hour draw's training curve predict how it scores?
+
+For each draw of ``benchmarks/train_2h.sh`` in docs/results.md's table "All two-hour
+runs, one table" (its outcomes: the B = 2 score and B = 5 minus ``catnipp_ti``, paired),
+reads the draw's training curves from ``docs/cards/`` (stages 1-2, then stage 3) and
+computes curve features over windows of updates: mean reward per decision and mean
+final Tr(P) of the training episodes (weighted by the episodes ending in each update).
+Prints Spearman's rho of each feature with each outcome, with a two-sided permutation
+p-value, over all draws and over the ``SELECT=1`` draws (8 on), and how often choosing
+the draw with the better feature of two would have chosen the better outcome: whether
+a recipe could spend its two hours on the more promising of two seeds.
+
+Usage:
+    python benchmarks/draw_signals.py [--permutations 5000] [--out signals.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import rankdata
+
+ROOT = Path(__file__).resolve().parent.parent
+CARDS = ROOT / "docs" / "cards"
+# draw -> (stages 1-2 curve, stage 3 card) under docs/cards/ours_2h_intent_*, from the
+# sections of docs/results.md that report each draw ("The whole recipe in two hours on
+# both cores" to "A sixteenth run"). Draw 7 continued draw 6's stages 1-2 and draws 3-4
+# share seed 2's first 96 updates; the sixteenth kept its stage-3 start, whose card holds
+# stages 1-2, and set stage 3's average aside.
+DRAWS = {
+    1: ("seed0_stages12.jsonl", "seed0.json"),
+    2: ("seed1_stages12.jsonl", "seed1.json"),
+    3: ("seed2_stages12.jsonl", "seed2.json"),
+    4: ("seed2_lr3e-5_stages12.jsonl", "seed2_lr3e-5.json"),
+    5: ("seed3_lr3e-5_stages12.jsonl", "seed3_lr3e-5.json"),
+    6: ("seed4_lr3e-5_stages12.jsonl", "seed4_lr3e-5.json"),
+    7: ("seed4_m38-55-18_stages12.jsonl", "seed4_m38-55-18.json"),
+    8: ("seed5_select_stages12.jsonl", "seed5_select.json"),
+    9: ("seed6_select_stages12.jsonl", "seed6_select.json"),
+    10: ("seed7_select_stages12.jsonl", "seed7_select.json"),
+    11: ("seed8_bf16_select_stages12.jsonl", "seed8_bf16_select.json"),
+    12: ("seed9_bf16_select_stages12.jsonl", "seed9_bf16_select.json"),
+    13: ("seed10_bf16_lr1e-4_select_stages12.jsonl", "seed10_bf16_lr1e-4_select.json"),
+    14: ("seed11_bf16_lr1e-4_select_stages12.jsonl", "seed11_bf16_lr1e-4_select.json"),
+    15: ("seed12_bf16_final_stages12.jsonl", "seed12_bf16_final.json"),
+    16: ("seed13_bf16_final.json", "seed13_bf16_final_stage3_avg.json"),
+}
+STAGE1_FRAMES = 1280  # 8 envs x 160 steps per stage-1 update; 16 envs after
+
+
+def curve(name: str) -> list[dict]:
+    """A card's per-update rows (``.jsonl``: one row a line; ``.json``: its curve)."""
+    path = CARDS / f"ours_2h_intent_{name}"
+    if path.suffix == ".jsonl":
+        return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    return json.loads(path.read_text())["curve"]
+
+
+def outcomes() -> dict[int, dict]:
+    """Each draw's seed, B = 2 score and B = 5 minus ``catnipp_ti`` from the docs' table."""
+    text = (ROOT / "docs" / "results.md").read_text()
+    table = text[text.index("**All two-hour runs, one table.**"):]
+    found = {}
+    for line in table.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == 11 and cells[0].isdigit():
+            found[int(cells[0])] = {"seed": int(cells[2]), "B2": float(cells[3]),
+                                    "B5_minus_ti": float(cells[9].split("±")[0])}
+        elif found and not line.startswith("|"):
+            break
+    return found
+
+
+def window_mean(rows: list[dict], key: str) -> float:
+    """Mean of ``key``; final traces weighted by the episodes that ended in each update."""
+    v = np.array([r.get(key, np.nan) for r in rows], float)
+    w = np.array([r["_episodes"] for r in rows], float) if key == "trace_final" \
+        else np.ones(len(v))
+    ok = np.isfinite(v) & (w > 0)
+    return float((v[ok] * w[ok]).sum() / w[ok].sum()) if ok.any() else float("nan")
+
+
+def features(draw: int) -> dict[str, float]:
+    s12, s3 = (curve(name) for name in DRAWS[draw])
+    for rows in (s12, s3):
+        before = 0
+        for r in rows:
+            r["_episodes"], before = r["episodes"] - before, r["episodes"]
+    frames = np.diff([0] + [r["frames"] for r in s12])
+    stage1_end = int(np.nonzero(frames == STAGE1_FRAMES)[0].max()) + 1
+    stage2 = s12[stage1_end:]
+    windows = {"u1-40": s12[:40], "u41-80": s12[40:80], "u1-80": s12[:80],
+               "first20min": [r for r in s12 if r["wall_s"] <= 1200],
+               "s1last40": s12[:stage1_end][-40:], "s2last40": stage2[-40:], "s3": s3}
+    out = {f"{short}_{w}": window_mean(rows, key) for w, rows in windows.items()
+           for key, short in (("reward_per_decision", "rpd"), ("trace_final", "trace"))}
+    out["stage1_updates"] = float(stage1_end)
+    return out
+
+
+def spearman_perm(x: list[float], y: list[float], n: int, rng: np.random.Generator
+                  ) -> tuple[float, float]:
+    """Spearman's rho and its two-sided permutation p-value."""
+    rx, ry = (rankdata(v) for v in (x, y))
+    rx, ry = (rx - rx.mean()) / rx.std(), (ry - ry.mean()) / ry.std()
+    rho = float((rx * ry).mean())
+    null = (np.stack([rng.permutation(ry) for _ in range(n)]) * rx).mean(1)
+    return rho, float((np.sum(np.abs(null) >= abs(rho) - 1e-12) + 1) / (n + 1))
+
+
+def pick_rate(feats: dict, outs: dict, draws: list[int], name: str, outcome: str
+              ) -> tuple[int, int]:
+    """Pairs of draws in which the one with the better feature (higher reward, lower
+    trace) also has the better (lower) outcome, and the pairs compared."""
+    higher_better = name.startswith(("rpd", "stage1"))
+    good = total = 0
+    for i in draws:
+        for j in draws:
+            fi, fj = feats[i][name], feats[j][name]
+            if i >= j or fi == fj or outs[i][outcome] == outs[j][outcome]:
+                continue
+            pick, other = (i, j) if (fi > fj) == higher_better else (j, i)
+            total += 1
+            good += outs[pick][outcome] < outs[other][outcome]
+    return good, total
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--permutations", type=int, default=5000)
+    parser.add_argument("--out", type=Path, help="write every correlation as JSON")
+    args = parser.parse_args()
+    outs = outcomes()
+    if sorted(outs) != sorted(DRAWS):
+        raise SystemExit(f"docs table draws {sorted(outs)} != mapped draws {sorted(DRAWS)}")
+    feats = {d: features(d) for d in DRAWS}
+    rng = np.random.default_rng(0)
+    subsets = {"all": sorted(DRAWS), "SELECT=1": [d for d in DRAWS if d >= 8]}
+    rows = []
+    for subset, draws in subsets.items():
+        for outcome in ("B5_minus_ti", "B2"):
+            for name in feats[1]:
+                rho, p = spearman_perm([feats[d][name] for d in draws],
+                                       [outs[d][outcome] for d in draws],
+                                       args.permutations, rng)
+                good, total = pick_rate(feats, outs, draws, name, outcome)
+                rows.append({"subset": subset, "outcome": outcome, "feature": name,
+                             "n": len(draws), "rho": rho, "p": p, "picks_better": good,
+                             "pairs": total})
+    print(f"{'subset':9} {'outcome':12} {'feature':18} {'n':>3} {'rho':>6} {'p':>6}  "
+          "better pick")
+    for r in rows:
+        print(f"{r['subset']:9} {r['outcome']:12} {r['feature']:18} {r['n']:3d} "
+              f"{r['rho']:+6.2f} {r['p']:6.3f}  {r['picks_better']}/{r['pairs']}")
+    if args.out:
+        args.out.write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
