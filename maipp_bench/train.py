@@ -202,8 +202,10 @@ def make_collection(cfg: Any, env_cfg: MAIPPConfig, learner: Learner
     collector = Collector(env, policy, frames_per_batch=cfg.n_envs * cfg.steps_per_batch,
                           total_frames=-1, auto_register_policy_transforms=False,
                           # each batch is read within its update only (decision rows and
-                          # metrics are indexed copies): no clone of the whole rollout
-                          return_same_td=True)
+                          # metrics are indexed copies): no clone of the whole rollout. On
+                          # CPU only: on CUDA TorchRL then runs the collector, and the
+                          # caller's work after it, on a side stream
+                          return_same_td=torch.device(cfg.device).type == "cpu")
     buffer = ReplayBuffer(storage=LazyTensorStorage(cfg.n_envs * cfg.steps_per_batch
                                                     * env_cfg.n_agents, device=cfg.device),
                           sampler=SamplerWithoutReplacement(), batch_size=cfg.algo.minibatch)
