@@ -17,6 +17,7 @@ Usage:
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 from pathlib import Path
 
@@ -27,9 +28,9 @@ ROOT = Path(__file__).resolve().parent.parent
 CARDS = ROOT / "docs" / "cards"
 # draw -> (stages 1-2 curve, stage 3 card) under docs/cards/ours_2h_intent_*, from the
 # sections of docs/results.md that report each draw ("The whole recipe in two hours on
-# both cores" to "A sixteenth run"). Draw 7 continued draw 6's stages 1-2 and draws 3-4
-# share seed 2's first 96 updates; the sixteenth kept its stage-3 start, whose card holds
-# stages 1-2, and set stage 3's average aside.
+# both cores" to "A seventeenth run"). Draw 7 continued draw 6's stages 1-2 and draws 3-4
+# share seed 2's first 96 updates; the sixteenth and seventeenth kept their stage-3 start,
+# whose card holds stages 1-2, and set stage 3's average aside.
 DRAWS = {
     1: ("seed0_stages12.jsonl", "seed0.json"),
     2: ("seed1_stages12.jsonl", "seed1.json"),
@@ -47,6 +48,7 @@ DRAWS = {
     14: ("seed11_bf16_lr1e-4_select_stages12.jsonl", "seed11_bf16_lr1e-4_select.json"),
     15: ("seed12_bf16_final_stages12.jsonl", "seed12_bf16_final.json"),
     16: ("seed13_bf16_final.json", "seed13_bf16_final_stage3_avg.json"),
+    17: ("seed14_bf16_final.json", "seed14_bf16_final_stage3_avg.json"),
 }
 STAGE1_FRAMES = 1280  # 8 envs x 160 steps per stage-1 update; 16 envs after
 
@@ -60,14 +62,14 @@ def curve(name: str) -> list[dict]:
 
 
 def outcomes() -> dict[int, dict]:
-    """Each draw's seed, B = 2 score and B = 5 minus ``catnipp_ti`` from the docs' table."""
+    """Each draw's B = 2 score and B = 5 minus ``catnipp_ti`` from the docs' table."""
     text = (ROOT / "docs" / "results.md").read_text()
     table = text[text.index("**All two-hour runs, one table.**"):]
     found = {}
     for line in table.splitlines():
         cells = [c.strip() for c in line.strip().strip("|").split("|")]
         if len(cells) == 11 and cells[0].isdigit():
-            found[int(cells[0])] = {"seed": int(cells[2]), "B2": float(cells[3]),
+            found[int(cells[0])] = {"B2": float(cells[3]),
                                     "B5_minus_ti": float(cells[9].split("±")[0])}
         elif found and not line.startswith("|"):
             break
@@ -75,9 +77,11 @@ def outcomes() -> dict[int, dict]:
 
 
 def window_mean(rows: list[dict], key: str) -> float:
-    """Mean of ``key``; final traces weighted by the episodes that ended in each update."""
+    """Mean of ``key``; final traces weighted by the episodes that ended in each update
+    (``ended``: the curve's cumulative ``episodes`` differenced, so windows need no row
+    before them)."""
     v = np.array([r.get(key, np.nan) for r in rows], float)
-    w = np.array([r["_episodes"] for r in rows], float) if key == "trace_final" \
+    w = np.array([r["ended"] for r in rows], float) if key == "trace_final" \
         else np.ones(len(v))
     ok = np.isfinite(v) & (w > 0)
     return float((v[ok] * w[ok]).sum() / w[ok].sum()) if ok.any() else float("nan")
@@ -86,9 +90,8 @@ def window_mean(rows: list[dict], key: str) -> float:
 def features(draw: int) -> dict[str, float]:
     s12, s3 = (curve(name) for name in DRAWS[draw])
     for rows in (s12, s3):
-        before = 0
-        for r in rows:
-            r["_episodes"], before = r["episodes"] - before, r["episodes"]
+        ended = np.diff([0] + [r["episodes"] for r in rows])
+        rows[:] = [{**r, "ended": int(n)} for r, n in zip(rows, ended)]
     frames = np.diff([0] + [r["frames"] for r in s12])
     stage1_end = int(np.nonzero(frames == STAGE1_FRAMES)[0].max()) + 1
     stage2 = s12[stage1_end:]
@@ -117,14 +120,13 @@ def pick_rate(feats: dict, outs: dict, draws: list[int], name: str, outcome: str
     trace) also has the better (lower) outcome, and the pairs compared."""
     higher_better = name.startswith(("rpd", "stage1"))
     good = total = 0
-    for i in draws:
-        for j in draws:
-            fi, fj = feats[i][name], feats[j][name]
-            if i >= j or fi == fj or outs[i][outcome] == outs[j][outcome]:
-                continue
-            pick, other = (i, j) if (fi > fj) == higher_better else (j, i)
-            total += 1
-            good += outs[pick][outcome] < outs[other][outcome]
+    for i, j in itertools.combinations(draws, 2):
+        fi, fj = feats[i][name], feats[j][name]
+        if fi == fj or outs[i][outcome] == outs[j][outcome]:
+            continue
+        pick, other = (i, j) if (fi > fj) == higher_better else (j, i)
+        total += 1
+        good += outs[pick][outcome] < outs[other][outcome]
     return good, total
 
 

@@ -165,10 +165,10 @@ def attend_rows(attn: nn.MultiheadAttention, query: torch.Tensor,
     q = nn.functional.linear(query, w[:d], bias[:d]).view(b, r, heads, d // heads)
     # nn.MultiheadAttention projects keys and values with one matmul, then adds the bias.
     # The bias takes the product's dtype first: under bf16 autocast an in-place add of a
-    # float32 bias into the bf16 product ran 5x slower than the matmul on CPU (a no-op cast
-    # in float32, whose bits stay the module's).
+    # float32 bias into the bf16 product took longer on CPU than the matmul itself
+    # (docs/performance.md); a no-op cast in float32, whose bits stay the module's.
     k_v = torch.matmul(kv, w[d:].t())
-    k_v = k_v.add_(bias[d:].to(k_v.dtype))
+    k_v.add_(bias[d:].to(k_v.dtype))
     k, v = k_v.view(b, n, 2, heads, d // heads).permute(2, 0, 3, 1, 4).unbind(0)
     out = nn.functional.scaled_dot_product_attention(q.transpose(1, 2), k, v)
     return attn.out_proj(out.transpose(1, 2).reshape(b, r, d))
