@@ -16,7 +16,9 @@
 # the choice's seconds, go to OUT_DIR/final_select.json. Runs on a finished train_2h.sh
 # output too (the run's training is not touched), so that older draws can be re-scored.
 # Run from the folder train_2h.sh ran in (the card's paths are relative to it).
-# Usage: [FINAL_EPISODES=64] [FINAL_FIRST=160] bash benchmarks/final_choice.sh OUT_DIR
+# HELDOUT_SET: the held-out episode set (default 2; 1 replays the choices made before
+# 2026-11-27's session 40 on one shared roadmap).
+# Usage: [FINAL_EPISODES=64] [FINAL_FIRST=160] [HELDOUT_SET=2] bash benchmarks/final_choice.sh OUT_DIR
 set -euo pipefail
 OUT=${1:?usage: final_choice.sh OUT_DIR}
 EPISODES=${FINAL_EPISODES:-64}
@@ -41,6 +43,7 @@ $EXPORT resume="$RUN2/checkpoint.pt" \
     "export_note='benchmarks/final_choice.sh: stage 3 of $OUT started from this network'"
 CHOSEN=$(python "$HERE/select_snapshot.py" --candidates "$OUT/start.pt" "$OUT/avg.pt" \
     --method ours_ti --budget 4 5 --episodes "$EPISODES" --first "$FIRST" --workers 2 \
+    --heldout-set "${HELDOUT_SET:-2}" \
     --out "$OUT/final_select.json" | tail -1)
 cp "$CHOSEN" "$OUT/final.pt"
 cp "${CHOSEN%.pt}.json" "$OUT/final.json"

@@ -47,6 +47,7 @@ from pathlib import Path
 import torch
 
 from maipp_bench.allocator import keep_freed_memory
+from maipp_bench.train import HELDOUT_SETS
 
 
 def mean_se(values: list[float]) -> tuple[float, float]:
@@ -57,14 +58,15 @@ def mean_se(values: list[float]) -> tuple[float, float]:
 
 def heldout(paths: list[str], episodes: int, budgets: list[float], methods: list[str],
             cache: Path | None = None, first: int = 0,
-            reference: tuple[str, str] | None = None) -> None:
+            reference: tuple[str, str] | None = None, heldout_set: int = 2) -> None:
     """Each checkpoint played by each of ``methods`` (empty: training's model selection,
     greedy decoding) on the same held-out episodes per budget; paired differences to the
     first (checkpoint, method), or to ``reference`` ``(method, checkpoint)`` played first
     (a baseline of another network, e.g. ``catnipp_ti`` with ``catnipp.pt``). With
     ``cache``, each (checkpoint, method, budget, episodes)'s rows are kept there and
     reused: budgets can run in separate processes. ``first``: the held-out episodes from
-    this one on (fresh episodes for a candidate chosen on the earlier ones)."""
+    this one on (fresh episodes for a candidate chosen on the earlier ones).
+    ``heldout_set``: training's held-out episode set (``HELDOUT_SETS``)."""
     from maipp_bench.algos.checkpoint import load_core
     from maipp_bench.algos.registry import get_method
     from maipp_bench.envs.config import MAIPPConfig
@@ -78,17 +80,19 @@ def heldout(paths: list[str], episodes: int, budgets: list[float], methods: list
     nets = {path: load_core(path) for path, _ in pairs}
     shas = {path: file_sha256(Path(path))[:12] for path in nets}
     for budget in budgets:
-        print(f"budget {budget}: {episodes} held-out episodes from #{first}")
+        print(f"budget {budget}: {episodes} held-out episodes (set {heldout_set}) "
+              f"from #{first}")
         ref: list[float] | None = None
         for path, spec in pairs:
             core, payload = nets[path]
             span = f"{episodes}" if first == 0 else f"{first}+{episodes}"
+            span += "" if heldout_set == 1 else f"_h{heldout_set}"  # set 1's files predate sets
             file = cache and cache / f"{shas[path]}_{spec.name}_B{budget:g}_{span}.json"
             if file and file.exists():
                 rows = json.loads(file.read_text())
             else:
                 rows = heldout_rows(core, MAIPPConfig.from_dict(payload["env"]), episodes,
-                                    budget, spec, first)
+                                    budget, spec, first, heldout=heldout_set)
                 if file:
                     file.parent.mkdir(parents=True, exist_ok=True)
                     file.write_text(json.dumps(rows))
@@ -170,6 +174,9 @@ def main() -> None:
                    help="--heldout: run these registered methods (e.g. ours_ti "
                         "ours_ti_no_intent) with each checkpoint instead of training's "
                         "greedy score")
+    p.add_argument("--heldout-set", type=int, choices=HELDOUT_SETS, default=2,
+                   help="--heldout: training's held-out episode set (2: a roadmap per "
+                        "episode; 1: one shared roadmap, the figures up to 2026-11-27)")
     p.add_argument("--reference", metavar="METHOD=CKPT",
                    help="--heldout: play this (method, checkpoint) first and pair every row "
                         "with it, e.g. catnipp_ti=maipp_bench/checkpoints/catnipp.pt")
@@ -198,7 +205,7 @@ def main() -> None:
         reference = (method, path)
     if args.heldout:
         heldout(args.heldout, args.episodes, args.budgets, args.heldout_method, args.cache,
-                args.first, reference)
+                args.first, reference, args.heldout_set)
     if args.subset:
         if not (args.method and args.against):
             p.error("--subset needs --method and --against")

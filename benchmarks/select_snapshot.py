@@ -38,6 +38,8 @@ from pathlib import Path
 import torch
 from paired_subset import mean_se
 
+from maipp_bench.train import HELDOUT_SETS
+
 
 def candidates(run: Path, window: int) -> list[tuple[int, Path]]:
     """(update, path) of the run's final checkpoint and of its snapshots from update
@@ -68,8 +70,8 @@ def _init_worker() -> None:
     torch.set_num_threads(1)
 
 
-def _traces(path: str, method: str, budget: float, episodes: int, first: int
-            ) -> list[float]:
+def _traces(path: str, method: str, budget: float, episodes: int, first: int,
+            heldout: int) -> list[float]:
     """Tr(P_f) of each held-out episode for ``method`` played with ``path``'s network."""
     from maipp_bench.algos.checkpoint import load_core
     from maipp_bench.algos.registry import get_method
@@ -78,7 +80,7 @@ def _traces(path: str, method: str, budget: float, episodes: int, first: int
 
     core, payload = load_core(path)
     rows = heldout_rows(core, MAIPPConfig.from_dict(payload["env"]), episodes, budget,
-                        get_method(method), first=first)
+                        get_method(method), first=first, heldout=heldout)
     return [r["trace"] for r in rows]
 
 
@@ -97,6 +99,10 @@ def main() -> None:
     p.add_argument("--first", type=int, default=0, metavar="N",
                    help="start at the N-th held-out seed (e.g. after those of an earlier "
                         "choice, so that the two choices see different worlds)")
+    p.add_argument("--heldout-set", type=int, choices=HELDOUT_SETS, default=2,
+                   help="held-out episode set: 2 draws a roadmap per episode as the "
+                        "protocol does; 1 (the choices documented up to 2026-11-27) plays "
+                        "them all on one roadmap")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", type=Path, help="write the scores and the choice here (JSON)")
     args = p.parse_args()
@@ -115,7 +121,8 @@ def main() -> None:
     start = time.perf_counter()
     with ProcessPoolExecutor(args.workers, mp_context=get_context("spawn"),
                              initializer=_init_worker) as pool:
-        futures = [[pool.submit(_traces, str(path), args.method, b, args.episodes, args.first)
+        futures = [[pool.submit(_traces, str(path), args.method, b, args.episodes, args.first,
+                                args.heldout_set)
                     for b in budgets] for _, path in found]
         traces = [[f.result() for f in per_budget] for per_budget in futures]
     seconds = time.perf_counter() - start
@@ -142,7 +149,7 @@ def main() -> None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps({
             "method": args.method, "budget": budgets[0] if len(budgets) == 1 else budgets,
-            "episodes": args.episodes, "first": args.first,
+            "episodes": args.episodes, "first": args.first, "heldout_set": args.heldout_set,
             "window": args.window if args.run is not None else None,
             "seconds": round(seconds, 1), "candidates": table, "chosen": best},
             indent=2) + "\n")

@@ -26,6 +26,10 @@
 # final.pt, final.json, final_select.json); its minutes (about 4 with 64 episodes,
 # FINAL_EPISODES) come out of the two hours too: SELECT=1's float32 runs took 116-117
 # minutes (bf16 114-115), so with both the default stage 3 is 26 minutes, not 28.
+# Since 2026-11-27 (session 40) both choices play held-out set 2 (a roadmap and start per
+# episode, as the protocol draws them; maipp_bench/train.py HELDOUT_SETS); the draws before
+# played set 1, every held-out episode on one roadmap (docs/results.md, "Held-out episodes
+# share one roadmap"). HELDOUT_SET=1 reproduces those choices.
 # Usage: [SELECT=1] [FINAL=1] [OVERRIDES="k=v ..."] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
 # OVERRIDES are Hydra overrides typed after each stage's own fields, so they win (e.g.
 # algo.precision=bf16; the tests' tiny task: env=tiny n_envs=3 ...); none by default.
@@ -41,10 +45,13 @@ SELECT=${SELECT:-0}
 FINAL=${FINAL:-0}
 SELECT_WINDOW=${SELECT_WINDOW:-15}
 SELECT_EPISODES=${SELECT_EPISODES:-160}
+export HELDOUT_SET=${HELDOUT_SET:-2}  # final_choice.sh reads it too
 [[ $SELECT == 0 || $SELECT == 1 ]] \
     || { echo "train_2h.sh: SELECT must be 0 or 1, got '$SELECT'" >&2; exit 2; }
 [[ $FINAL == 0 || $FINAL == 1 ]] \
     || { echo "train_2h.sh: FINAL must be 0 or 1, got '$FINAL'" >&2; exit 2; }
+[[ $HELDOUT_SET == 1 || $HELDOUT_SET == 2 ]] \
+    || { echo "train_2h.sh: HELDOUT_SET must be 1 or 2, got '$HELDOUT_SET'" >&2; exit 2; }
 if [[ $SELECT == 1 ]]; then D2=42 D3=$((FINAL == 1 ? 26 : 28)); else D2=37 D3=36; fi
 for n in "$SELECT_EPISODES" "${FINAL_EPISODES:-64}"; do  # not found out after two hours
     [[ $n =~ ^[0-9]+$ ]] && ((n >= 2)) \
@@ -87,6 +94,7 @@ NOTE="fixed before the run"
 if [[ $SELECT == 1 ]]; then
     START=$(python "$HERE/select_snapshot.py" --run "$OUT/stage2" --window "$SELECT_WINDOW" \
         --method ours_ti --budget 2 --episodes "$SELECT_EPISODES" --workers 2 \
+        --heldout-set "$HELDOUT_SET" \
         --out "$OUT/select.json" | tail -1)
     echo "selected $START $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
     NOTE="fixed before the run; stage 3 started from $START, chosen on held-out episodes at B = 2 ($OUT/select.json); wall_s_with_init leaves out the updates of stage 2 after it and the minutes of the choice; the whole wall clock of the run is in $OUT/wall.txt"

@@ -21,7 +21,7 @@ from maipp_bench.algos.registry import get_method
 from maipp_bench.allocator import keep_freed_memory
 from maipp_bench.envs.config import MAIPPConfig
 from maipp_bench.envs.maipp_env import MAIPPEnv
-from maipp_bench.train import heldout_rows
+from maipp_bench.train import HELDOUT_SETS, heldout_rows
 
 INF = float("inf")
 SD_BINS = (0.0, 0.3, 0.5, 0.7, 0.8, 0.9, INF)
@@ -29,7 +29,8 @@ MEAN_BINS = (-INF, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, INF)
 
 
 @torch.no_grad()
-def moves(method: str, budget: float, episodes: int) -> tuple[torch.Tensor, ...]:
+def moves(method: str, budget: float, episodes: int, heldout: int = 2
+          ) -> tuple[torch.Tensor, ...]:
     """Risk mean, sd and whether it traps, at the target of every move of ``method``
     (checkpoint as registered) on training's held-out episodes; moves of ended episodes are
     left out (their actions are never read; trapped agents never decide)."""
@@ -51,7 +52,7 @@ def moves(method: str, budget: float, episodes: int) -> tuple[torch.Tensor, ...]
                                 traps], -1).double())
 
     heldout_rows(core, MAIPPConfig.from_dict(payload["env"]), episodes, budget, spec,
-                 on_action=record)
+                 on_action=record, heldout=heldout)
     mu, sd, traps = torch.cat(out).unbind(-1)
     return mu, sd, traps.bool()
 
@@ -69,10 +70,13 @@ def main() -> None:
     p.add_argument("--method", default="ours_ti")
     p.add_argument("--budget", type=float, default=5.0)
     p.add_argument("--episodes", type=int, default=72)
+    p.add_argument("--heldout-set", type=int, choices=HELDOUT_SETS, default=2,
+                   help="training's held-out episode set (1: the docs' figures up to "
+                        "2026-11-27, one shared roadmap)")
     args = p.parse_args()
     keep_freed_memory()  # as the CLIs do (maipp_bench/allocator.py)
     torch.set_num_threads(1)
-    mu, sd, trap = moves(args.method, args.budget, args.episodes)
+    mu, sd, trap = moves(args.method, args.budget, args.episodes, args.heldout_set)
     print(f"{args.method}, B = {args.budget:g}, {args.episodes} held-out episodes: "
           f"{len(mu)} moves, {int(trap.sum())} into a trap")
     table("sd", sd, trap, SD_BINS)

@@ -64,6 +64,11 @@ from maipp_bench.protocol.protocol import file_sha256, load_protocol
 from maipp_bench.protocol.runner import run_chunk
 
 HELDOUT_SEED_BASE = 2**40  # periodic evaluation episodes: never the protocol's seeds
+# Held-out episode sets. 1: every episode on one roadmap and start node (one trial seed,
+# HELDOUT_SEED_BASE, for all; the runs and choices documented up to 2026-11-27). 2: episode
+# i has its own trial seed (HELDOUT_SEED_BASE + i), so its own roadmap and start, as the
+# protocol gives each (instance, trial) its own: the set that ranks like the protocol.
+HELDOUT_SETS = (1, 2)
 
 _PY_TYPES = {"int": int, "float": float, "bool": bool, "str": str}
 # The env group's schema: every MAIPPConfig field, typed (MAIPPConfig validates ranges).
@@ -108,6 +113,7 @@ class TrainConfig:
     # every budget counts by its relative change), else at eval_budget.
     eval_method: str = "greedy"
     eval_budgets: list[float] = field(default_factory=list)
+    eval_heldout: int = 2  # the held-out episode set (HELDOUT_SETS: 1 = one shared roadmap)
     # Keep the weights of every evaluated update in <run>/snapshots/update_<N>.pt (slim
     # policy files): best.pt is chosen by the held-out score, which may not rank candidates
     # as the leaderboard's method would; snapshots let them be compared afterwards
@@ -250,18 +256,28 @@ def greedy_method(name: str) -> MethodSpec:
                       params={"mode": "greedy"}, learned=True)
 
 
+def check_heldout(heldout: int) -> int:
+    """``heldout`` if it names a held-out episode set, else a ValueError listing them."""
+    if heldout not in HELDOUT_SETS:
+        raise ValueError(f"held-out episode set {heldout!r}; valid: {list(HELDOUT_SETS)} "
+                         "(1: one shared roadmap, 2: a roadmap per episode)")
+    return heldout
+
+
 def heldout_rows(core: Any, env_cfg: MAIPPConfig, episodes: int, budget: float,
                  method: MethodSpec, first: int = 0,
-                 on_action: Callable[[MAIPPEnv, TensorDictBase], None] | None = None
-                 ) -> list[dict[str, Any]]:
+                 on_action: Callable[[MAIPPEnv, TensorDictBase], None] | None = None,
+                 heldout: int = 2) -> list[dict[str, Any]]:
     """``method`` with the network ``core`` on ``episodes`` held-out seeds (never the
     protocol's) from the ``first``-th on, at a fixed ``budget``: one result row per episode
-    (each episode's row depends on its own seed only, so ranges can be scored apart).
-    ``on_action``: see :func:`~maipp_bench.protocol.runner.run_chunk`."""
+    (each episode's row depends on its own seeds only, so ranges can be scored apart).
+    ``heldout``: the episode set (:data:`HELDOUT_SETS`). ``on_action``: see
+    :func:`~maipp_bench.protocol.runner.run_chunk`."""
     seeds = [HELDOUT_SEED_BASE + i for i in range(first, first + episodes)]
+    trials = HELDOUT_SEED_BASE if check_heldout(heldout) == 1 else seeds
     eval_cfg = env_cfg.replace(budget=budget, budget_min=0.0, node_encoding_dim=0)
     device = next(core.parameters()).device  # where the network is, the episodes run
-    return run_chunk(method, eval_cfg, seeds, trial_seed=HELDOUT_SEED_BASE, device=device,
+    return run_chunk(method, eval_cfg, seeds, trial_seed=trials, device=device,
                      on_action=on_action, core=core)
 
 
@@ -282,6 +298,7 @@ def eval_spec(cfg: Any) -> tuple[MethodSpec, list[float]]:
     budgets = sorted({float(b) for b in (cfg.eval_budgets or [cfg.eval_budget])})
     if any(not math.isfinite(b) or b <= 0 for b in budgets):
         raise ValueError(f"eval_budgets={budgets}: budgets must be finite and > 0")
+    check_heldout(cfg.eval_heldout)
     if cfg.eval_method == "greedy":
         return greedy_method(cfg.algo.name), budgets
     spec = get_method(cfg.eval_method)  # ValueError listing the registered methods
@@ -306,20 +323,21 @@ def warn_unseen_intents(cfg: Any, spec: MethodSpec) -> None:
                       f"the snapshots under TI afterwards", stacklevel=2)
 
 
-def _tag(method: str, budgets: list[float]) -> str:
-    return f"{method}@{','.join(f'{b:g}' for b in budgets)}"
+def _tag(method: str, budgets: list[float], heldout: int) -> str:
+    tag = f"{method}@{','.join(f'{b:g}' for b in budgets)}"
+    return tag if heldout == 1 else f"{tag}/h{heldout}"  # set 1's rows predate the suffix
 
 
 def eval_tag(cfg: Any) -> str:
     """What an ``eval/trace`` value measures: only values of one tag are compared."""
-    return _tag(cfg.eval_method, eval_spec(cfg)[1])
+    return _tag(cfg.eval_method, eval_spec(cfg)[1], cfg.eval_heldout)
 
 
 def row_tag(row: dict[str, Any], state: dict[str, Any]) -> str:
     """A curve row's eval tag; rows written before tags existed were greedy decoding at
     the ``eval_budget`` of the run that wrote them."""
     budget = state.get("config", {}).get("eval_budget", TrainConfig.eval_budget)
-    return row.get("eval/tag", _tag("greedy", [float(budget)]))
+    return row.get("eval/tag", _tag("greedy", [float(budget)], 1))
 
 
 def trace_score(per_budget: list[float]) -> float:
@@ -342,14 +360,15 @@ def evaluate(learner: Learner, env_cfg: MAIPPConfig, cfg: Any) -> dict[str, Any]
     per_budget, rows = [], []
     for budget in budgets:
         with full_precision(learner.core):  # what the saved float32 network plays
-            chunk = heldout_rows(learner.core, env_cfg, cfg.eval_episodes, budget, spec)
+            chunk = heldout_rows(learner.core, env_cfg, cfg.eval_episodes, budget, spec,
+                                 heldout=cfg.eval_heldout)
         per_budget.append(sum(r["trace"] for r in chunk) / len(chunk))
         rows += chunk
         if len(budgets) > 1:
             out[f"eval/trace_B{budget:g}"] = per_budget[-1]
     out["eval/trace"] = trace_score(per_budget)
     out.update({f"eval/{k}": sum(r[k] for r in rows) / len(rows) for k in ("rmse", "traps")})
-    out["eval/tag"] = _tag(cfg.eval_method, budgets)
+    out["eval/tag"] = _tag(cfg.eval_method, budgets, cfg.eval_heldout)
     return out
 
 

@@ -27,8 +27,28 @@ def test_method_plays_valid_episodes(name, comm_range, tiny_checkpoint):
         assert 0 < r["trace"] <= 900
         assert r["steps"] >= 1
     again = run_chunk(spec, cfg, [11, 12], trial_seed=5, **kwargs)
-    strip = [{k: v for k, v in r.items() if k != "planning_s"} for r in rows]
-    assert strip == [{k: v for k, v in r.items() if k != "planning_s"} for r in again]
+    assert _strip(rows) == _strip(again)
+
+
+def _strip(rows: list[dict]) -> list[dict]:
+    return [{k: v for k, v in r.items() if k != "planning_s"} for r in rows]
+
+
+@pytest.mark.parametrize("name", ["random", "ours_ti"])
+def test_a_trial_seed_per_episode_plays_each_episode_as_its_own_chunk(name, tiny_checkpoint):
+    """Training's held-out episodes give each episode its own trial seed (its own roadmap,
+    start and method randomness): a batch of them plays exactly what one chunk per
+    (instance, trial) plays, and each row records its trial."""
+    cfg = MAIPPConfig(**SMALL)
+    spec = algos.get_method(name)
+    kwargs = {"checkpoint": str(tiny_checkpoint)} if spec.learned else {}
+    rows = run_chunk(spec, cfg, [11, 12], trial_seed=[5, 7], **kwargs)
+    alone = [run_chunk(spec, cfg, [inst], trial_seed=trial, **kwargs)[0]
+             for inst, trial in ((11, 5), (12, 7))]
+    assert [r["trial"] for r in rows] == [5, 7]
+    assert _strip(rows) == _strip(alone)
+    with pytest.raises(ValueError, match="1 trial seeds for 2 instances"):
+        run_chunk(spec, cfg, [11, 12], trial_seed=[5], **kwargs)
 
 
 @pytest.mark.cuda

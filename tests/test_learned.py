@@ -479,7 +479,8 @@ def test_training_scripts_reject_bad_arguments_before_training(script, args, mes
 @pytest.mark.parametrize(("variable", "value", "message"), [
     ("SELECT", "yes", "SELECT must be 0 or 1"), ("FINAL", "yes", "FINAL must be 0 or 1"),
     ("FINAL_EPISODES", "1", "must be integers >= 2, got '1'"),
-    ("SELECT_EPISODES", "many", "must be integers >= 2, got 'many'")])
+    ("SELECT_EPISODES", "many", "must be integers >= 2, got 'many'"),
+    ("HELDOUT_SET", "3", "HELDOUT_SET must be 1 or 2, got '3'")])
 def test_train_2h_rejects_a_bad_switch_before_training(tmp_path, variable, value, message):
     out = tmp_path / "run"
     proc = subprocess.run(["bash", str(Path(__file__).parents[1] / "benchmarks" / "train_2h.sh"),
@@ -507,6 +508,7 @@ def test_train_2h_runs_its_stages_and_the_choices_end_to_end(tmp_path):
     assert stamps == ["start", "stage1", "stage2", "selected", "final", "end"]
     choice = json.loads((out / "select.json").read_text())
     assert choice["budget"] == 2.0 and choice["episodes"] == 2
+    assert choice["heldout_set"] == 2  # a roadmap per held-out episode, as the protocol
     card = json.loads((out / "avg.json").read_text())
     averaged = card["averaged_updates"]
     assert averaged[0] == 5 and averaged == list(range(5, averaged[-1] + 1, 5))
@@ -519,6 +521,7 @@ def test_train_2h_runs_its_stages_and_the_choices_end_to_end(tmp_path):
 
     final = json.loads((out / "final_select.json").read_text())
     assert final["budget"] == [4.0, 5.0] and final["episodes"] == 2
+    assert final["heldout_set"] == 2
     assert [Path(c["path"]).name for c in final["candidates"]] == ["start.pt", "avg.pt"]
     for c in final["candidates"]:  # the score is the geometric mean of the two budgets'
         assert c["mean"] == pytest.approx((c["mean_B4"] * c["mean_B5"]) ** 0.5)
@@ -601,6 +604,7 @@ def test_select_snapshot_scores_the_window_and_picks_the_lowest(tiny_checkpoint,
     assert proc.returncode == 0, proc.stderr
     result = json.loads(out.read_text())
     assert [c["update"] for c in result["candidates"]] == [1, 2]
+    assert result["heldout_set"] == 2  # a roadmap per episode unless asked
     first, end = result["candidates"]
     assert first["mean"] != end["mean"]  # the choice below follows the scores
     assert result["chosen"] == min(first, end, key=lambda c: c["mean"])
@@ -623,10 +627,12 @@ def test_select_snapshot_scores_the_window_and_picks_the_lowest(tiny_checkpoint,
     tie = subprocess.run([sys.executable, str(script), "--candidates",
                           str(run / "checkpoint.pt"), str(tmp_path / "copy.pt"), "--budget",
                           "4", "5", "--episodes", "2", "--first", "7", "--workers", "1",
-                          "--out", str(out)], capture_output=True, text=True, timeout=300)
+                          "--heldout-set", "1", "--out", str(out)],
+                         capture_output=True, text=True, timeout=300)
     assert tie.returncode == 0, tie.stderr
     result = json.loads(out.read_text())
     assert result["first"] == 7 and result["budget"] == [4.0, 5.0]
+    assert result["heldout_set"] == 1
     first, copy_ = result["candidates"]
     assert first["mean"] == copy_["mean"] and copy_["minus_end_B5"] == 0.0
     assert result["chosen"]["path"] == tie.stdout.strip() == str(tmp_path / "copy.pt")
@@ -924,8 +930,8 @@ def test_held_out_evaluation_can_run_the_ranked_method_at_several_budgets(tmp_pa
     for row in card["curve"]:
         per_budget = [row["eval/trace_B1"], row["eval/trace_B1.5"]]
         assert row["eval/trace"] == pytest.approx(math.sqrt(per_budget[0] * per_budget[1]))
-        assert row["eval/tag"] == "ours_ti@1,1.5"
-    assert "ours_ti@1,1.5" in card["selected_by"]
+        assert row["eval/tag"] == "ours_ti@1,1.5/h2"
+    assert "ours_ti@1,1.5/h2" in card["selected_by"]
     # Resuming under another evaluation restarts the selection: old scores never compete.
     train(compose_train(*TINY_TRAIN, "total_updates=3", "eval_every=1", "eval_episodes=2",
                         f"resume={tmp_path / 'run' / 'checkpoint.pt'}", f"export={out}"),
@@ -940,6 +946,7 @@ def test_held_out_evaluation_can_run_the_ranked_method_at_several_budgets(tmp_pa
     ("eval_method=catnipp_ti", "'ours' network"),  # another network's features / roadmap
     ("eval_method=nonexistent", "nonexistent"),
     ("eval_budgets=[0.0]", "eval_budgets"),
+    ("eval_heldout=3", r"held-out episode set 3; valid: \[1, 2\]"),
 ])
 def test_bad_held_out_evaluation_is_a_clear_error(override, message, tmp_path):
     from maipp_bench.train import train
@@ -952,11 +959,37 @@ def test_eval_tag_names_what_a_score_measures():
     from maipp_bench.train import eval_tag, row_tag
 
     cfg = compose_train(*TINY_TRAIN, "eval_method=ours_ti", "eval_budgets=[3,2,2]")
-    assert eval_tag(cfg) == "ours_ti@2,3"  # sorted, each budget once
-    assert eval_tag(compose_train(*TINY_TRAIN, "eval_budget=4")) == "greedy@4"
+    assert eval_tag(cfg) == "ours_ti@2,3/h2"  # sorted, each budget once
+    assert eval_tag(compose_train(*TINY_TRAIN, "eval_budget=4")) == "greedy@4/h2"
+    # the shared-roadmap set's tags have no suffix: its rows predate held-out sets
+    assert eval_tag(compose_train(*TINY_TRAIN, "eval_heldout=1")) == "greedy@3"
     # rows written before tags existed: greedy at the eval_budget of their run
     assert row_tag({"eval/trace": 1.0}, {"config": {"eval_budget": 4.0}}) == "greedy@4"
     assert row_tag({"eval/tag": "ours_ti@2,3"}, {}) == "ours_ti@2,3"
+
+
+@pytest.mark.parametrize("heldout,roadmaps", [(1, 1), (2, 3)])
+def test_held_out_sets_share_one_roadmap_or_draw_one_per_episode(heldout, roadmaps,
+                                                                 tiny_checkpoint):
+    """Set 1 (the runs documented up to 2026-11-27) plays every held-out episode on one
+    roadmap and start; set 2 draws each its own, as the protocol does per (instance,
+    trial). Either way an episode's row depends on its own seeds only."""
+    from maipp_bench.train import greedy_method, heldout_rows
+
+    core, payload = load_core(str(tiny_checkpoint))
+    cfg, spec = MAIPPConfig.from_dict(payload["env"]), greedy_method("ours")
+    first_nodes = []
+
+    def record(env, td):
+        if not first_nodes:
+            first_nodes.append(env.episode.roadmap.nodes.clone())
+
+    rows = heldout_rows(core, cfg, 3, 1.0, spec, on_action=record, heldout=heldout)
+    assert len(torch.unique(first_nodes[0], dim=0)) == roadmaps
+    assert len({r["trial"] for r in rows}) == roadmaps
+    later = heldout_rows(core, cfg, 2, 1.0, spec, first=1, heldout=heldout)
+    strip = [{k: v for k, v in r.items() if k != "planning_s"} for r in (*rows[1:], *later)]
+    assert strip[:2] == strip[2:]
 
 
 @pytest.mark.cuda

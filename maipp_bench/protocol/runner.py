@@ -7,8 +7,9 @@ composition never changes, so a resumed run computes exactly what an uninterrupt
 
 from __future__ import annotations
 
+import operator
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
@@ -23,10 +24,21 @@ from maipp_bench.envs.maipp_env import COUNT_METRICS, METRICS, MAIPPEnv
 ROW_METRICS = METRICS
 
 
-def method_seeds(instance_seeds: list[int], trial_seed: int) -> torch.Tensor:
+def trial_seeds(instance_seeds: list[int], trial_seed: int | Sequence[int]) -> list[int]:
+    """One trial seed per episode: ``trial_seed`` for all, or its own for each."""
+    if not isinstance(trial_seed, Sequence):
+        return [operator.index(trial_seed)] * len(instance_seeds)  # numpy integers too
+    trials = [operator.index(t) for t in trial_seed]
+    if len(trials) != len(instance_seeds):
+        raise ValueError(f"{len(trials)} trial seeds for {len(instance_seeds)} instances")
+    return trials
+
+
+def method_seeds(instance_seeds: list[int], trial_seed: int | Sequence[int]) -> torch.Tensor:
     """Per-episode method seeds, a fixed function of (instance, trial)."""
     inst = torch.tensor(instance_seeds, dtype=torch.int64)
-    return rng.derive(rng.seed_key(trial_seed), inst)
+    trials = torch.tensor(trial_seeds(instance_seeds, trial_seed), dtype=torch.int64)
+    return rng.derive(rng.mix(trials), inst)  # rng.seed_key of each trial seed
 
 
 def task_config(method: MethodSpec, cfg: MAIPPConfig) -> MAIPPConfig:
@@ -40,22 +52,24 @@ def run_chunk(
     method: MethodSpec,
     cfg: MAIPPConfig,
     instance_seeds: list[int],
-    trial_seed: int,
+    trial_seed: int | Sequence[int],
     device: str | torch.device = "cpu",
     on_action: Callable[[MAIPPEnv, TensorDictBase], None] | None = None,
     **policy_kwargs: Any,
 ) -> list[dict[str, Any]]:
-    """Play one episode per instance (same trial seed) to the end; return the rows.
-    ``on_action(env, td)``, if given, sees every step's actions before the env applies
-    them (diagnostics; not timed as planning)."""
+    """Play one episode per instance to the end; return the rows. ``trial_seed``: one for
+    every episode (a protocol chunk) or one per instance. ``on_action(env, td)``, if
+    given, sees every step's actions before the env applies them (diagnostics; not timed
+    as planning)."""
     e = len(instance_seeds)
+    trials = trial_seeds(instance_seeds, trial_seed)
     env = MAIPPEnv(task_config(method, cfg), batch_size=[e], device=device)
     td = env.reset(TensorDict(
         instance_seed=torch.tensor(instance_seeds, dtype=torch.int64, device=env.device),
-        trial_seed=torch.full((e,), trial_seed, dtype=torch.int64, device=env.device),
+        trial_seed=torch.tensor(trials, dtype=torch.int64, device=env.device),
         batch_size=[e], device=env.device,
     ))
-    policy = method.build(env, method_seeds(instance_seeds, trial_seed), **policy_kwargs)
+    policy = method.build(env, method_seeds(instance_seeds, trials), **policy_kwargs)
     finished = torch.zeros(e, dtype=torch.bool, device=env.device)
     final = {name: torch.zeros(e, dtype=torch.float64) for name in ROW_METRICS}
     steps = torch.zeros(e, dtype=torch.int64)
@@ -77,8 +91,8 @@ def run_chunk(
         finished |= done
         td = nxt
     rows = []
-    for i, inst in enumerate(instance_seeds):
-        row = {"instance": int(inst), "trial": int(trial_seed), "steps": int(steps[i])}
+    for i, (inst, trial) in enumerate(zip(instance_seeds, trials)):
+        row = {"instance": int(inst), "trial": trial, "steps": int(steps[i])}
         for name in ROW_METRICS:
             v = float(final[name][i])
             row[name] = int(v) if name in COUNT_METRICS else v
