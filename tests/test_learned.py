@@ -664,6 +664,58 @@ def test_paired_subset_leaves_out_excluded_episodes_and_names_the_worst(tmp_path
     assert bad.returncode == 2 and "expected INSTANCE:TRIAL" in bad.stderr
 
 
+def test_heldout_vs_protocol_ranks_networks_from_chunked_rows(tiny_checkpoint, tmp_path):
+    """benchmarks/heldout_vs_protocol.py: each network's held-out mean, played in chunks,
+    is the mean of one unchunked call; networks are found by sha256 in the protocol rows
+    and ranked against them; --cached-only computes nothing."""
+    from maipp_bench.protocol.protocol import file_sha256
+    from maipp_bench.train import heldout_rows
+
+    script = Path(__file__).parents[1] / "benchmarks" / "heldout_vs_protocol.py"
+    payload = torch.load(tiny_checkpoint, weights_only=False)
+    nets, means, rows = [], [], []
+    for i, scale in enumerate((1.0, -1.0, 0.5)):  # three different networks
+        other = copy.deepcopy(payload)
+        with torch.no_grad():
+            for value in other["core"].values():
+                if value.is_floating_point():
+                    value.mul_(scale)
+        nets.append(tmp_path / f"net{i}.pt")
+        torch.save(other, nets[-1])
+        core, saved = load_core(nets[-1])
+        traces = [r["trace"] for r in heldout_rows(
+            core, MAIPPConfig.from_dict(saved["env"]), 3, 1.0, algos.get_method("ours_greedy"),
+            heldout=2)]
+        means.append(sum(traces) / 3)
+        # protocol means: the first two networks' held-out means (+100 for the second),
+        # the third's -1: whatever the held-out order, the agreement is computable
+        protocol = [m + 100.0 * i for m in traces] if i < 2 else [-1.0] * 3
+        rows += [{"checkpoint_sha256": file_sha256(nets[-1]), "setting": "budget=1.0",
+                  "trace": t} for t in protocol]
+    assert len(set(means)) == 3
+    (tmp_path / "res" / "s").mkdir(parents=True)
+    (tmp_path / "res" / "s" / "ours_greedy.jsonl").write_text(
+        "".join(json.dumps(r) + "\n" for r in rows))
+    out = tmp_path / "report.json"
+    args = [sys.executable, str(script), "--nets", *map(str, nets), "--results",
+            str(tmp_path / "res"), "--method", "ours_greedy", "--budgets", "1", "--episodes",
+            "3", "--chunk", "2", "--workers", "1", "--cache", str(tmp_path / "cache")]
+    proc = subprocess.run(args + ["--sets", "2", "--permutations", "50", "--out", str(out)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    (report,) = json.loads(out.read_text())["report"]
+    assert report["heldout_set"] == 2 and report["pairs"] == 3
+    assert [n["heldout"] for n in report["networks"]] == pytest.approx(means, rel=1e-12)
+    protocol = [means[0], means[1] + 100.0, -1.0]
+    assert [n["protocol"] for n in report["networks"]] == pytest.approx(protocol)
+    assert report["pairs_same"] == sum((means[i] < means[j]) == (protocol[i] < protocol[j])
+                                       for i, j in ((0, 1), (0, 2), (1, 2)))
+    cached = subprocess.run(args + ["--sets", "1", "--cached-only"],
+                            capture_output=True, text=True, timeout=120)
+    assert cached.returncode == 0, cached.stderr
+    assert "set 1: 0 networks with every row; no ranking" in cached.stdout
+
+
 def test_training_curve_plot(tiny_checkpoint, tmp_path):
     from maipp_bench.curves import main, read_curve
 
