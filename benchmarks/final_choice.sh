@@ -23,6 +23,9 @@ set -euo pipefail
 OUT=${1:?usage: final_choice.sh OUT_DIR}
 EPISODES=${FINAL_EPISODES:-64}
 FIRST=${FINAL_FIRST:-160}
+HELDOUT_SET=${HELDOUT_SET:-2}
+[[ $HELDOUT_SET == 1 || $HELDOUT_SET == 2 ]] \
+    || { echo "final_choice.sh: HELDOUT_SET must be 1 or 2, got '$HELDOUT_SET'" >&2; exit 2; }
 HERE=$(dirname "$0")
 [[ -f $OUT/avg.json && -d $OUT/stage3/snapshots ]] \
     || { echo "final_choice.sh: $OUT is not a finished train_2h.sh run (no avg.json or stage3/snapshots/)" >&2; exit 2; }
@@ -43,7 +46,7 @@ $EXPORT resume="$RUN2/checkpoint.pt" \
     "export_note='benchmarks/final_choice.sh: stage 3 of $OUT started from this network'"
 CHOSEN=$(python "$HERE/select_snapshot.py" --candidates "$OUT/start.pt" "$OUT/avg.pt" \
     --method ours_ti --budget 4 5 --episodes "$EPISODES" --first "$FIRST" --workers 2 \
-    --heldout-set "${HELDOUT_SET:-2}" \
+    --heldout-set "$HELDOUT_SET" \
     --out "$OUT/final_select.json" | tail -1)
 cp "$CHOSEN" "$OUT/final.pt"
 cp "${CHOSEN%.pt}.json" "$OUT/final.json"

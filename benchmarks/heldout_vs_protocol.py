@@ -1,5 +1,5 @@
 """Do held-out scores rank networks as the protocol does? The check behind training's
-held-out episode sets (maipp_bench/train.py ``HELDOUT_SETS``; docs/results.md, "Held-out
+held-out episode sets (maipp_bench/heldout.py ``HELDOUT_SETS``; docs/results.md, "Held-out
 episodes share one roadmap").
 
 Each network (a policy file or checkpoint whose protocol rows are in one of ``--results``,
@@ -25,6 +25,7 @@ import itertools
 import json
 import statistics as st
 import sys
+import tempfile
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
 from pathlib import Path
@@ -32,8 +33,8 @@ from pathlib import Path
 import numpy as np
 from paired_subset import mean_se
 
+from maipp_bench.heldout import HELDOUT_SETS
 from maipp_bench.protocol.protocol import file_sha256
-from maipp_bench.train import HELDOUT_SETS
 
 
 def _cache_file(cache: Path, sha: str, method: str, budget: float, first: int, n: int,
@@ -59,37 +60,59 @@ def _play(path: str, method: str, budget: float, first: int, n: int, heldout: in
     core, payload = load_core(path)
     rows = heldout_rows(core, MAIPPConfig.from_dict(payload["env"]), n, budget,
                         get_method(method), first=first, heldout=heldout)
-    tmp = Path(out).with_suffix(".tmp")
-    tmp.write_text(json.dumps([{"instance": r["instance"], "trial": r["trial"],
-                                "trace": r["trace"]} for r in rows]))
-    tmp.replace(out)
+    with tempfile.NamedTemporaryFile("w", dir=Path(out).parent, suffix=".tmp",
+                                     delete=False) as tmp:  # unique: runs may share a cache
+        json.dump([{"instance": r["instance"], "trial": r["trial"], "trace": r["trace"]}
+                   for r in rows], tmp)
+    Path(tmp.name).replace(out)
     return out
 
 
-def protocol_means(results: list[Path], method: str) -> dict[str, dict[float, float]]:
-    """Mean protocol Tr(P_f) per checkpoint sha256 and budget, from eval --out folders."""
+def protocol_means(results: list[Path], suite: str, method: str
+                   ) -> dict[str, dict[float, float]]:
+    """Mean protocol Tr(P_f) per checkpoint sha256 and budget, from the ``suite`` rows of
+    eval --out folders; a budget with fewer rows than the suite's episodes is a warning."""
+    from maipp_bench.protocol.protocol import load_protocol
+
+    spec = load_protocol(1).suites[suite]
+    budgets = {s.key: float(dict(s.values)["budget"]) for s in spec.settings
+               if dict(s.values).keys() == {"budget"}}  # settings that vary the budget alone
     traces: dict[str, dict[float, list[float]]] = {}
     for folder in results:
-        for file in folder.glob(f"*/{method}.jsonl"):
-            for row in map(json.loads, open(file)):
-                budget = float(row["setting"].removeprefix("budget="))
-                traces.setdefault(row["checkpoint_sha256"], {}).setdefault(
-                    budget, []).append(row["trace"])
+        file = folder / suite / f"{method}.jsonl"
+        if not file.exists():
+            continue
+        with open(file) as rows:
+            for row in map(json.loads, rows):
+                if row["setting"] in budgets:
+                    traces.setdefault(row["checkpoint_sha256"], {}).setdefault(
+                        budgets[row["setting"]], []).append(row["trace"])
+    for sha, per in traces.items():
+        for b, v in per.items():
+            if len(v) < spec.n_episodes:
+                print(f"warning: {sha[:12]} at B = {b:g}: {len(v)} protocol rows of "
+                      f"{spec.n_episodes}", file=sys.stderr)
     return {sha: {b: st.mean(v) for b, v in per.items()} for sha, per in traces.items()}
 
 
 def pair_agreement(held: list[float], proto: list[float]) -> tuple[int, int]:
-    """Pairs of networks that the held-out means order as the protocol means do, of all."""
-    same = sum((held[i] < held[j]) == (proto[i] < proto[j])
-               for i, j in itertools.combinations(range(len(held)), 2))
-    return same, len(held) * (len(held) - 1) // 2
+    """Pairs of networks that the held-out means order as the protocol means do, and the
+    pairs compared (a tie on either side orders nothing and is left out)."""
+    same = total = 0
+    for i, j in itertools.combinations(range(len(held)), 2):
+        if held[i] != held[j] and proto[i] != proto[j]:
+            total += 1
+            same += (held[i] < held[j]) == (proto[i] < proto[j])
+    return same, total
 
 
 def main() -> None:
+    """Compute the missing held-out rows, then rank (see the module's docstring)."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--nets", type=Path, nargs="+", required=True)
     p.add_argument("--results", type=Path, nargs="+", required=True,
                    help="eval --out folders holding the networks' protocol rows")
+    p.add_argument("--suite", default="risk_aware", help="the protocol rows' suite")
     p.add_argument("--method", default="ours_ti")
     p.add_argument("--budgets", type=float, nargs="+", default=[2.0])
     p.add_argument("--sets", type=int, nargs="+", choices=HELDOUT_SETS,
@@ -103,16 +126,21 @@ def main() -> None:
     p.add_argument("--permutations", type=int, default=5000)
     p.add_argument("--out", type=Path, help="the report as JSON")
     args = p.parse_args()
-    if args.episodes < 2 or args.chunk < 1 or args.workers < 1:
-        p.error("--episodes must be >= 2, --chunk >= 1, --workers >= 1")
+    if args.episodes < 2 or args.chunk < 1 or args.workers < 1 or args.permutations < 1:
+        p.error("--episodes must be >= 2, --chunk >= 1, --workers >= 1, --permutations >= 1")
     missing = [str(n) for n in args.nets if not n.exists()]
     if missing:
         p.error(f"--nets: no such file: {', '.join(missing)}")
 
     shas = {net: file_sha256(net) for net in args.nets}
-    means = protocol_means(args.results, args.method)
+    means = protocol_means(args.results, args.suite, args.method)
     args.cache.mkdir(parents=True, exist_ok=True)
     firsts = range(0, args.episodes, args.chunk)
+    for b in args.budgets:
+        for net in args.nets:
+            if b not in means.get(shas[net], {}):
+                print(f"{net} (sha256 {shas[net][:12]}): no {args.suite} protocol rows of "
+                      f"{args.method} at B = {b:g}; left out", file=sys.stderr)
     plan = {(net, b, h): [_cache_file(args.cache, shas[net], args.method, b, f,
                                       min(args.chunk, args.episodes - f), h) for f in firsts]
             for b in args.budgets for net in args.nets for h in args.sets  # a network's
@@ -126,10 +154,10 @@ def main() -> None:
             for i, done in enumerate(pool.map(_play, *zip(*jobs)) if jobs else []):
                 print(f"[{i + 1}/{len(jobs)}] {done}", file=sys.stderr, flush=True)
 
-    rng = np.random.default_rng(0)
     report = []
     for b in args.budgets:
         for h in args.sets:
+            rng = np.random.default_rng(0)  # each p-value its own permutations
             nets, held, proto, ses = [], [], [], []
             for net in args.nets:
                 files = plan.get((net, b, h), [])
@@ -158,8 +186,11 @@ def main() -> None:
             for n, m, s, q in zip(nets, held, ses, proto):
                 print(f"    held out {m:7.2f} ± {s:5.2f}   protocol {q:7.2f}   {n}")
     if args.out:
-        args.out.write_text(json.dumps({"method": args.method, "report": report}, indent=2)
-                            + "\n")
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = args.out.with_name(args.out.name + ".tmp")
+        tmp.write_text(json.dumps({"suite": args.suite, "method": args.method,
+                                   "report": report}, indent=2) + "\n")
+        tmp.replace(args.out)
 
 
 if __name__ == "__main__":

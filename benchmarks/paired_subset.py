@@ -47,7 +47,7 @@ from pathlib import Path
 import torch
 
 from maipp_bench.allocator import keep_freed_memory
-from maipp_bench.train import HELDOUT_SETS
+from maipp_bench.heldout import HELDOUT_SETS
 
 
 def mean_se(values: list[float]) -> tuple[float, float]:

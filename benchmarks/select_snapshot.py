@@ -38,7 +38,7 @@ from pathlib import Path
 import torch
 from paired_subset import mean_se
 
-from maipp_bench.train import HELDOUT_SETS
+from maipp_bench.heldout import HELDOUT_SETS
 
 
 def candidates(run: Path, window: int) -> list[tuple[int, Path]]:

@@ -21,7 +21,8 @@ from maipp_bench.algos.registry import get_method
 from maipp_bench.allocator import keep_freed_memory
 from maipp_bench.envs.config import MAIPPConfig
 from maipp_bench.envs.maipp_env import MAIPPEnv
-from maipp_bench.train import HELDOUT_SETS, heldout_rows
+from maipp_bench.heldout import HELDOUT_SETS
+from maipp_bench.train import heldout_rows
 
 INF = float("inf")
 SD_BINS = (0.0, 0.3, 0.5, 0.7, 0.8, 0.9, INF)

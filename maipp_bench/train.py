@@ -59,16 +59,10 @@ from maipp_bench.allocator import keep_freed_memory
 from maipp_bench.envs import rng
 from maipp_bench.envs.config import MAIPPConfig, check_device
 from maipp_bench.envs.maipp_env import MAIPPEnv
+from maipp_bench.heldout import HELDOUT_SETS, check_heldout, heldout_seeds
 from maipp_bench.protocol.leaderboard import git_commit
 from maipp_bench.protocol.protocol import file_sha256, load_protocol
 from maipp_bench.protocol.runner import run_chunk
-
-HELDOUT_SEED_BASE = 2**40  # periodic evaluation episodes: never the protocol's seeds
-# Held-out episode sets. 1: every episode on one roadmap and start node (one trial seed,
-# HELDOUT_SEED_BASE, for all; the runs and choices documented up to 2026-11-27). 2: episode
-# i has its own trial seed (HELDOUT_SEED_BASE + i), so its own roadmap and start, as the
-# protocol gives each (instance, trial) its own: the set that ranks like the protocol.
-HELDOUT_SETS = (1, 2)
 
 _PY_TYPES = {"int": int, "float": float, "bool": bool, "str": str}
 # The env group's schema: every MAIPPConfig field, typed (MAIPPConfig validates ranges).
@@ -113,7 +107,7 @@ class TrainConfig:
     # every budget counts by its relative change), else at eval_budget.
     eval_method: str = "greedy"
     eval_budgets: list[float] = field(default_factory=list)
-    eval_heldout: int = 2  # the held-out episode set (HELDOUT_SETS: 1 = one shared roadmap)
+    eval_heldout: int = 2  # the held-out episode set (maipp_bench/heldout.py: 1 = one roadmap)
     # Keep the weights of every evaluated update in <run>/snapshots/update_<N>.pt (slim
     # policy files): best.pt is chosen by the held-out score, which may not rank candidates
     # as the leaderboard's method would; snapshots let them be compared afterwards
@@ -256,14 +250,6 @@ def greedy_method(name: str) -> MethodSpec:
                       params={"mode": "greedy"}, learned=True)
 
 
-def check_heldout(heldout: int) -> int:
-    """``heldout`` if it names a held-out episode set, else a ValueError listing them."""
-    if heldout not in HELDOUT_SETS:
-        raise ValueError(f"held-out episode set {heldout!r}; valid: {list(HELDOUT_SETS)} "
-                         "(1: one shared roadmap, 2: a roadmap per episode)")
-    return heldout
-
-
 def heldout_rows(core: Any, env_cfg: MAIPPConfig, episodes: int, budget: float,
                  method: MethodSpec, first: int = 0,
                  on_action: Callable[[MAIPPEnv, TensorDictBase], None] | None = None,
@@ -273,8 +259,7 @@ def heldout_rows(core: Any, env_cfg: MAIPPConfig, episodes: int, budget: float,
     (each episode's row depends on its own seeds only, so ranges can be scored apart).
     ``heldout``: the episode set (:data:`HELDOUT_SETS`). ``on_action``: see
     :func:`~maipp_bench.protocol.runner.run_chunk`."""
-    seeds = [HELDOUT_SEED_BASE + i for i in range(first, first + episodes)]
-    trials = HELDOUT_SEED_BASE if check_heldout(heldout) == 1 else seeds
+    seeds, trials = heldout_seeds(first, episodes, heldout)
     eval_cfg = env_cfg.replace(budget=budget, budget_min=0.0, node_encoding_dim=0)
     device = next(core.parameters()).device  # where the network is, the episodes run
     return run_chunk(method, eval_cfg, seeds, trial_seed=trials, device=device,
@@ -438,6 +423,8 @@ def _with_init(card: dict[str, Any], lineage: dict[str, Any] | None, key: str) -
 # takes them from its own command line, never from the checkpoint.
 INVOCATION_FIELDS = ("device", "threads", "progress", "resume", "init", "export", "export_from",
                      "export_note")
+# Fields added after runs were saved, with what those runs did: a resumed old run keeps that.
+SAVED_BEFORE = {"eval_heldout": 1}  # held-out set 2 came on 2026-11-27
 
 
 _ABSENT = object()
@@ -487,6 +474,11 @@ def resumed_config(cfg: Any, overrides: list[str]) -> Any:
                 why = err.msg.splitlines()[0]
                 raise ValueError(f"resume={cfg.resume}: its {path}={value!r} does not fit "
                                  f"this code's config ({why}); type {path}=...") from err
+    for path, value in SAVED_BEFORE.items():
+        if path not in typed and OmegaConf.select(OmegaConf.create(saved), path,
+                                                  default=_ABSENT) is _ABSENT:
+            inherited.append(f"{path}={value!r} (saved before the field existed)")
+            OmegaConf.update(out, path, value, merge=False)
     if inherited:
         print("resume: the run's own settings, kept:\n  " + "\n  ".join(inherited))
     return out
@@ -510,7 +502,9 @@ def train(cfg: Any, run_dir: Path) -> Path:
     # Disjoint from every protocol seed, so training never sees the leaderboard's episodes.
     protocol_seeds = {s for suite in load_protocol(1).suites.values()
                       for s in (*suite.instance_seeds, *suite.trial_seeds)}
-    assert not protocol_seeds & {HELDOUT_SEED_BASE + i for i in range(cfg.eval_episodes)}
+    for heldout in HELDOUT_SETS:
+        seeds, trials = heldout_seeds(0, cfg.eval_episodes, heldout)
+        assert not protocol_seeds & {*seeds, *([trials] if isinstance(trials, int) else trials)}
 
     torch.manual_seed(cfg.seed)  # the network's initial weights
     learner = build_learner(cfg.algo, env_cfg.node_encoding_dim, env_cfg.interest_threshold,

@@ -3,12 +3,13 @@ refuses masked actions), budgets kept, seeds reproduce, bad parameters are refus
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
 from maipp_bench import algos
 from maipp_bench.envs import MAIPPConfig
-from maipp_bench.protocol.runner import run_chunk, task_config
+from maipp_bench.protocol.runner import run_chunk, task_config, trial_seeds
 
 SMALL = dict(n_agents=2, budget=1.0, n_nodes=40, k_neighbors=8)
 
@@ -47,8 +48,13 @@ def test_a_trial_seed_per_episode_plays_each_episode_as_its_own_chunk(name, tiny
              for inst, trial in ((11, 5), (12, 7))]
     assert [r["trial"] for r in rows] == [5, 7]
     assert _strip(rows) == _strip(alone)
+    assert trial_seeds([11, 12], torch.tensor([5, 7])) == trial_seeds([11, 12], (5, 7))
+    assert trial_seeds([11, 12], np.int64(5)) == [5, 5]
     with pytest.raises(ValueError, match="1 trial seeds for 2 instances"):
         run_chunk(spec, cfg, [11, 12], trial_seed=[5], **kwargs)
+    for bad in ("57", 5.0, [5, 7.0]):
+        with pytest.raises(TypeError, match="an int or one int per instance"):
+            trial_seeds([11, 12], bad)
 
 
 @pytest.mark.cuda

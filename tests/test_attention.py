@@ -45,6 +45,34 @@ def test_laplacian_encoding_matches_numpy(obs):
         assert min(np.abs(col - v[:, j + 1]).max(), np.abs(col + v[:, j + 1]).max()) < 1e-8
 
 
+def test_laplacian_encoding_signs_do_not_hang_on_rounding(monkeypatch):
+    """A symmetric roadmap (a path) has eigenvectors whose largest entries tie in magnitude
+    with opposite signs; rounding, which differs with the batch and the device, must not
+    pick the sign (it once did: a held-out episode played differently in another batch)."""
+    n = 6  # path 0 - 1 - ... - 5: neighbour slots (i - 1, i + 1)
+    idx = torch.arange(n)
+    neighbors = torch.stack([(idx - 1).clamp_min(0), (idx + 1).clamp_max(n - 1)], -1)[None]
+    valid = torch.stack([idx > 0, idx < n - 1], -1)[None]
+    eigh = torch.linalg.eigh
+    encodings = []
+    for favoured in (slice(0, n // 2), slice(n // 2, n)):  # 1e-13: far below SIGN_TIE
+        def rounded(lap, favoured=favoured):
+            w, v = eigh(lap)
+            v = v.clone()
+            v[..., favoured, :] *= 1 + 1e-13
+            return w, v
+
+        monkeypatch.setattr(torch.linalg, "eigh", rounded)
+        encodings.append(laplacian_encoding(neighbors, valid, dim=4))
+    monkeypatch.undo()
+    tied = encodings[0].abs()[0, :3] - encodings[0].abs()[0, 3:].flip(0)
+    assert tied.abs().max() < 1e-9  # the path's vectors are (anti)symmetric: ties
+    assert torch.allclose(encodings[0], encodings[1], rtol=0, atol=1e-12)
+    peak = encodings[0].abs().amax(1, keepdim=True)
+    first = (encodings[0].abs() >= peak - 1e-9).to(torch.uint8).argmax(1)
+    assert (encodings[0][0, first[0], torch.arange(4)] > 0).all()  # the first tied entry
+
+
 @pytest.mark.parametrize("feature_set", ["ours", "catnipp"])
 def test_policy_never_picks_a_masked_slot(obs, feature_set):
     env, td = obs

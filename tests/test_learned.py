@@ -294,6 +294,16 @@ def test_resume_alone_continues_the_run_as_it_was_started(tmp_path, capsys):
     assert cli.returncode == 0, cli.stderr
     assert "n_envs=3 (this command: 8)" in cli.stdout
     assert torch.load(part, weights_only=False)["config"]["n_envs"] == 3
+    # A run saved before held-out set 2 existed goes on evaluating on set 1, unless typed.
+    assert cfg.eval_heldout == 2
+    old = torch.load(part, weights_only=False)
+    del old["config"]["eval_heldout"]
+    torch.save(old, tmp_path / "old.pt")
+    typed = [f"resume={tmp_path / 'old.pt'}"]
+    assert resumed_config(compose_train(*typed), typed).eval_heldout == 1
+    assert "eval_heldout=1 (saved before the field existed)" in capsys.readouterr().out
+    assert resumed_config(compose_train(*typed, "eval_heldout=2"),
+                          [*typed, "eval_heldout=2"]).eval_heldout == 2
 
 
 @pytest.mark.parametrize("mode", ["greedy", "ti"])
@@ -548,6 +558,9 @@ def test_final_choice_refuses_a_run_it_cannot_read(tmp_path):
                           timeout=60)
     assert proc.returncode == 2 and "elsewhere/checkpoint.pt" in proc.stderr
     assert not (run / "start.pt").exists()
+    proc = subprocess.run(["bash", str(script), str(run)], capture_output=True, text=True,
+                          timeout=60, env={**os.environ, "HELDOUT_SET": "3"})
+    assert proc.returncode == 2 and "HELDOUT_SET must be 1 or 2, got '3'" in proc.stderr
 
 
 def test_final_choice_exports_a_stage2_snapshot_start(tmp_path):
@@ -665,15 +678,16 @@ def test_paired_subset_leaves_out_excluded_episodes_and_names_the_worst(tmp_path
 
 
 def test_heldout_vs_protocol_ranks_networks_from_chunked_rows(tiny_checkpoint, tmp_path):
-    """benchmarks/heldout_vs_protocol.py: each network's held-out mean, played in chunks,
-    is the mean of one unchunked call; networks are found by sha256 in the protocol rows
-    and ranked against them; --cached-only computes nothing."""
+    """benchmarks/heldout_vs_protocol.py: each network's held-out mean per set, played in
+    chunks, is the mean of one unchunked call of that set; networks are found by sha256 in
+    the suite's protocol rows and ranked against them; --cached-only computes nothing and
+    reports the same from the cache."""
     from maipp_bench.protocol.protocol import file_sha256
     from maipp_bench.train import heldout_rows
 
     script = Path(__file__).parents[1] / "benchmarks" / "heldout_vs_protocol.py"
     payload = torch.load(tiny_checkpoint, weights_only=False)
-    nets, means, rows = [], [], []
+    nets, means, rows = [], {1: [], 2: []}, []
     for i, scale in enumerate((1.0, -1.0, 0.5)):  # three different networks
         other = copy.deepcopy(payload)
         with torch.no_grad():
@@ -683,37 +697,48 @@ def test_heldout_vs_protocol_ranks_networks_from_chunked_rows(tiny_checkpoint, t
         nets.append(tmp_path / f"net{i}.pt")
         torch.save(other, nets[-1])
         core, saved = load_core(nets[-1])
-        traces = [r["trace"] for r in heldout_rows(
-            core, MAIPPConfig.from_dict(saved["env"]), 3, 1.0, algos.get_method("ours_greedy"),
-            heldout=2)]
-        means.append(sum(traces) / 3)
-        # protocol means: the first two networks' held-out means (+100 for the second),
-        # the third's -1: whatever the held-out order, the agreement is computable
-        protocol = [m + 100.0 * i for m in traces] if i < 2 else [-1.0] * 3
+        for h in (1, 2):
+            traces = [r["trace"] for r in heldout_rows(
+                core, MAIPPConfig.from_dict(saved["env"]), 3, 1.0,
+                algos.get_method("ours_greedy"), heldout=h)]
+            means[h].append(sum(traces) / 3)
         rows += [{"checkpoint_sha256": file_sha256(nets[-1]), "setting": "budget=1.0",
-                  "trace": t} for t in protocol]
-    assert len(set(means)) == 3
-    (tmp_path / "res" / "s").mkdir(parents=True)
-    (tmp_path / "res" / "s" / "ours_greedy.jsonl").write_text(
+                  "trace": t} for t in (10.0 * i, 10.0 * i + 2.0)]  # protocol means 1, 11, 21
+    assert len(set(means[2])) == 3
+    (tmp_path / "res" / "smoke").mkdir(parents=True)
+    (tmp_path / "res" / "smoke" / "ours_greedy.jsonl").write_text(
         "".join(json.dumps(r) + "\n" for r in rows))
     out = tmp_path / "report.json"
     args = [sys.executable, str(script), "--nets", *map(str, nets), "--results",
-            str(tmp_path / "res"), "--method", "ours_greedy", "--budgets", "1", "--episodes",
-            "3", "--chunk", "2", "--workers", "1", "--cache", str(tmp_path / "cache")]
-    proc = subprocess.run(args + ["--sets", "2", "--permutations", "50", "--out", str(out)],
-                          capture_output=True, text=True, timeout=300)
+            str(tmp_path / "res"), "--suite", "smoke", "--method", "ours_greedy", "--budgets",
+            "1", "1.5", "--episodes", "3", "--chunk", "2", "--cache", str(tmp_path / "cache"),
+            "--permutations", "50", "--workers", "1", "--out"]
+    proc = subprocess.run(args + [str(out), "--sets", "1", "2"], capture_output=True,
+                          text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
-    (report,) = json.loads(out.read_text())["report"]
-    assert report["heldout_set"] == 2 and report["pairs"] == 3
-    assert [n["heldout"] for n in report["networks"]] == pytest.approx(means, rel=1e-12)
-    protocol = [means[0], means[1] + 100.0, -1.0]
-    assert [n["protocol"] for n in report["networks"]] == pytest.approx(protocol)
-    assert report["pairs_same"] == sum((means[i] < means[j]) == (protocol[i] < protocol[j])
-                                       for i, j in ((0, 1), (0, 2), (1, 2)))
-    cached = subprocess.run(args + ["--sets", "1", "--cached-only"],
-                            capture_output=True, text=True, timeout=120)
-    assert cached.returncode == 0, cached.stderr
-    assert "set 1: 0 networks with every row; no ranking" in cached.stdout
+    assert "no smoke protocol rows of ours_greedy at B = 1.5; left out" in proc.stderr
+    report = json.loads(out.read_text())["report"]
+    assert [(r["budget"], r["heldout_set"]) for r in report] == [(1.0, 1), (1.0, 2)]
+    for r in report:
+        assert [n["heldout"] for n in r["networks"]] == pytest.approx(means[r["heldout_set"]],
+                                                                    rel=1e-12)
+        assert [n["protocol"] for n in r["networks"]] == [1.0, 11.0, 21.0]
+        ranks = [sorted(means[r["heldout_set"]]).index(m) for m in means[r["heldout_set"]]]
+        same = sum(ranks[a] < ranks[b] for a, b in ((0, 1), (0, 2), (1, 2)))
+        assert (r["pairs_same"], r["pairs"]) == (same, 3)
+        assert r["rho"] == pytest.approx(1 - 6 * sum((k - n) ** 2 for n, k in
+                                                     enumerate(ranks)) / (3 * 8))
+    cached = tmp_path / "cached.json"
+    again = subprocess.run(args + [str(cached), "--sets", "1", "2", "--cached-only"],
+                           capture_output=True, text=True, timeout=120)
+    assert again.returncode == 0, again.stderr
+    assert json.loads(cached.read_text()) == json.loads(out.read_text())
+    assert "[1/" not in again.stderr  # nothing computed
+    empty = subprocess.run(args + [str(cached), "--sets", "2", "--cached-only", "--cache",
+                                   str(tmp_path / "none")], capture_output=True, text=True,
+                           timeout=120)
+    assert empty.returncode == 0, empty.stderr
+    assert "set 2: 0 networks with every row; no ranking" in empty.stdout
 
 
 def test_training_curve_plot(tiny_checkpoint, tmp_path):
@@ -1025,7 +1050,8 @@ def test_held_out_sets_share_one_roadmap_or_draw_one_per_episode(heldout, roadma
                                                                  tiny_checkpoint):
     """Set 1 (the runs documented up to 2026-11-27) plays every held-out episode on one
     roadmap and start; set 2 draws each its own, as the protocol does per (instance,
-    trial). Either way an episode's row depends on its own seeds only."""
+    trial). Either way an episode's row depends on its own seeds only, and its method
+    randomness is its own."""
     from maipp_bench.train import greedy_method, heldout_rows
 
     core, payload = load_core(str(tiny_checkpoint))
@@ -1042,6 +1068,12 @@ def test_held_out_sets_share_one_roadmap_or_draw_one_per_episode(heldout, roadma
     later = heldout_rows(core, cfg, 2, 1.0, spec, first=1, heldout=heldout)
     strip = [{k: v for k, v in r.items() if k != "planning_s"} for r in (*rows[1:], *later)]
     assert strip[:2] == strip[2:]
+    # every episode its own method randomness (set 2's first version, trial seed = instance
+    # seed, gave all one: the two cancel in the method key's hash)
+    from maipp_bench.heldout import heldout_seeds
+    from maipp_bench.protocol.runner import method_seeds
+
+    assert len(torch.unique(method_seeds(*heldout_seeds(0, 64, heldout)))) == 64
 
 
 @pytest.mark.cuda

@@ -79,6 +79,11 @@ def build_roadmap(
     )
 
 
+# Entries of an eigenvector this close in magnitude count as tied for its sign (float64
+# rounding is ~1e-15; distinct entries of a 200-node roadmap's vectors differ by far more).
+SIGN_TIE = 1e-9
+
+
 def laplacian_encoding(
     neighbors: torch.Tensor, valid: torch.Tensor, dim: int = 32
 ) -> torch.Tensor:
@@ -87,7 +92,10 @@ def laplacian_encoding(
     Eigenvectors of the symmetric normalised Laplacian I - D^-1/2 A D^-1/2 of the
     symmetrised k-NN graph (the reference code built I - D^-1/2 A by mistake), for the
     ``dim`` smallest eigenvalues after the first (constant) one; each vector's sign is
-    fixed so that its largest-magnitude entry is positive (eigenvectors have no sign).
+    fixed so that its largest-magnitude entry is positive (eigenvectors have no sign), the
+    entry of lowest index among those within ``SIGN_TIE`` of the largest: a symmetric
+    roadmap gives entries of equal magnitude and opposite sign, and rounding (which differs
+    with the batch, the device) must not choose between them.
     """
     e, n, _ = neighbors.shape
     adj = torch.zeros(e, n, n, dtype=torch.float64, device=neighbors.device)
@@ -101,5 +109,7 @@ def laplacian_encoding(
     vecs = vecs[..., 1 : dim + 1]
     if vecs.shape[-1] < dim:
         vecs = torch.nn.functional.pad(vecs, (0, dim - vecs.shape[-1]))
-    peak = vecs.gather(-2, vecs.abs().argmax(-2, keepdim=True))
+    mag = vecs.abs()
+    near = mag >= mag.amax(-2, keepdim=True) - SIGN_TIE
+    peak = vecs.gather(-2, near.to(torch.uint8).argmax(-2, keepdim=True))  # first of them
     return vecs * torch.where(peak < 0, -1.0, 1.0)

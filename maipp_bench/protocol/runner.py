@@ -25,10 +25,16 @@ ROW_METRICS = METRICS
 
 
 def trial_seeds(instance_seeds: list[int], trial_seed: int | Sequence[int]) -> list[int]:
-    """One trial seed per episode: ``trial_seed`` for all, or its own for each."""
-    if not isinstance(trial_seed, Sequence):
-        return [operator.index(trial_seed)] * len(instance_seeds)  # numpy integers too
-    trials = [operator.index(t) for t in trial_seed]
+    """One trial seed per episode: ``trial_seed`` (an integer) for all, or one integer per
+    instance (a sequence, tensor or array); anything else is a TypeError saying so."""
+    seeds = trial_seed.tolist() if getattr(trial_seed, "ndim", 0) >= 1 else trial_seed
+    try:
+        if not isinstance(seeds, Sequence) or isinstance(seeds, (str, bytes)):
+            return [operator.index(seeds)] * len(instance_seeds)  # numpy integers too
+        trials = [operator.index(t) for t in seeds]
+    except TypeError:
+        raise TypeError(f"trial_seed: an int or one int per instance, got {trial_seed!r}"
+                        ) from None
     if len(trials) != len(instance_seeds):
         raise ValueError(f"{len(trials)} trial seeds for {len(instance_seeds)} instances")
     return trials
