@@ -27,7 +27,7 @@
 # FINAL_EPISODES) come out of the two hours too: SELECT=1's float32 runs took 116-117
 # minutes (bf16 114-115), so with both the default stage 3 is 26 minutes, not 28.
 # Since 2026-11-27 (session 40) both choices play held-out set 2 (a roadmap and start per
-# episode, as the protocol draws them; maipp_bench/train.py HELDOUT_SETS); the draws before
+# episode, as the protocol draws them; maipp_bench/heldout.py HELDOUT_SETS); the draws before
 # played set 1, every held-out episode on one roadmap (docs/results.md, "Held-out episodes
 # share one roadmap"). HELDOUT_SET=1 reproduces those choices.
 # Usage: [SELECT=1] [FINAL=1] [OVERRIDES="k=v ..."] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
