@@ -49,6 +49,7 @@ DRAWS = {
     15: ("seed12_bf16_final_stages12.jsonl", "seed12_bf16_final.json"),
     16: ("seed13_bf16_final.json", "seed13_bf16_final_stage3_avg.json"),
     17: ("seed14_bf16_final.json", "seed14_bf16_final_stage3_avg.json"),
+    18: ("seed15_bf16_final_h2.json", "seed15_bf16_final_h2_stage3_avg.json"),
 }
 STAGE1_FRAMES = 1280  # 8 envs x 160 steps per stage-1 update; 16 envs after
 
