@@ -28,8 +28,8 @@ ROOT = Path(__file__).resolve().parent.parent
 CARDS = ROOT / "docs" / "cards"
 # draw -> (stages 1-2 curve, stage 3 card) under docs/cards/ours_2h_intent_*, from the
 # sections of docs/results.md that report each draw ("The whole recipe in two hours on
-# both cores" to "A seventeenth run"). Draw 7 continued draw 6's stages 1-2 and draws 3-4
-# share seed 2's first 96 updates; the sixteenth and seventeenth kept their stage-3 start,
+# both cores" to "An eighteenth run"). Draw 7 continued draw 6's stages 1-2 and draws 3-4
+# share seed 2's first 96 updates; the sixteenth to eighteenth kept their stage-3 start,
 # whose card holds stages 1-2, and set stage 3's average aside.
 DRAWS = {
     1: ("seed0_stages12.jsonl", "seed0.json"),
