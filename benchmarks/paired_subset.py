@@ -47,7 +47,7 @@ from pathlib import Path
 import torch
 
 from maipp_bench.allocator import keep_freed_memory
-from maipp_bench.heldout import HELDOUT_SETS
+from maipp_bench.heldout import add_heldout_argument
 
 
 def mean_se(values: list[float]) -> tuple[float, float]:
@@ -174,9 +174,7 @@ def main() -> None:
                    help="--heldout: run these registered methods (e.g. ours_ti "
                         "ours_ti_no_intent) with each checkpoint instead of training's "
                         "greedy score")
-    p.add_argument("--heldout-set", type=int, choices=HELDOUT_SETS, default=2,
-                   help="--heldout: training's held-out episode set (2: a roadmap per "
-                        "episode; 1: one shared roadmap, the figures up to 2026-11-27)")
+    add_heldout_argument(p)
     p.add_argument("--reference", metavar="METHOD=CKPT",
                    help="--heldout: play this (method, checkpoint) first and pair every row "
                         "with it, e.g. catnipp_ti=maipp_bench/checkpoints/catnipp.pt")

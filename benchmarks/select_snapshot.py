@@ -38,7 +38,7 @@ from pathlib import Path
 import torch
 from paired_subset import mean_se
 
-from maipp_bench.heldout import HELDOUT_SETS
+from maipp_bench.heldout import add_heldout_argument
 
 
 def candidates(run: Path, window: int) -> list[tuple[int, Path]]:
@@ -99,10 +99,7 @@ def main() -> None:
     p.add_argument("--first", type=int, default=0, metavar="N",
                    help="start at the N-th held-out seed (e.g. after those of an earlier "
                         "choice, so that the two choices see different worlds)")
-    p.add_argument("--heldout-set", type=int, choices=HELDOUT_SETS, default=2,
-                   help="held-out episode set: 2 draws a roadmap per episode as the "
-                        "protocol does; 1 (the choices documented up to 2026-11-27) plays "
-                        "them all on one roadmap")
+    add_heldout_argument(p)
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", type=Path, help="write the scores and the choice here (JSON)")
     args = p.parse_args()

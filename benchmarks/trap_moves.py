@@ -21,7 +21,7 @@ from maipp_bench.algos.registry import get_method
 from maipp_bench.allocator import keep_freed_memory
 from maipp_bench.envs.config import MAIPPConfig
 from maipp_bench.envs.maipp_env import MAIPPEnv
-from maipp_bench.heldout import HELDOUT_SETS
+from maipp_bench.heldout import add_heldout_argument
 from maipp_bench.train import heldout_rows
 
 INF = float("inf")
@@ -71,9 +71,7 @@ def main() -> None:
     p.add_argument("--method", default="ours_ti")
     p.add_argument("--budget", type=float, default=5.0)
     p.add_argument("--episodes", type=int, default=72)
-    p.add_argument("--heldout-set", type=int, choices=HELDOUT_SETS, default=2,
-                   help="training's held-out episode set (1: the docs' figures up to "
-                        "2026-11-27, one shared roadmap)")
+    add_heldout_argument(p)
     args = p.parse_args()
     keep_freed_memory()  # as the CLIs do (maipp_bench/allocator.py)
     torch.set_num_threads(1)

@@ -3,6 +3,8 @@ the protocol's (a light module: scripts read its constants without importing tra
 
 from __future__ import annotations
 
+import argparse
+
 HELDOUT_SEED_BASE = 2**40  # instance seeds of the held-out episodes: never the protocol's
 # Set 2's trial seeds: their own range, so that an episode's method key, a hash of
 # (trial, instance), is its own (equal trial and instance seeds cancel in that hash).
@@ -29,3 +31,11 @@ def heldout_seeds(first: int, episodes: int, heldout: int) -> tuple[list[int], i
     if check_heldout(heldout) == 1:
         return instances, HELDOUT_SEED_BASE
     return instances, [HELDOUT_TRIAL_BASE + i for i in range(first, first + episodes)]
+
+
+def add_heldout_argument(parser: argparse.ArgumentParser) -> None:
+    """The scripts' ``--heldout-set`` flag (default: set 2)."""
+    parser.add_argument("--heldout-set", type=int, choices=HELDOUT_SETS, default=2,
+                        help="training's held-out episode set: 2 draws a roadmap per episode "
+                             "as the protocol does; 1 plays them all on one roadmap (the "
+                             "choices and figures documented up to 2026-11-27)")

@@ -62,7 +62,7 @@ from maipp_bench.envs.maipp_env import MAIPPEnv
 from maipp_bench.heldout import HELDOUT_SETS, check_heldout, heldout_seeds
 from maipp_bench.protocol.leaderboard import git_commit
 from maipp_bench.protocol.protocol import file_sha256, load_protocol
-from maipp_bench.protocol.runner import run_chunk
+from maipp_bench.protocol.runner import run_chunk, trial_seeds
 
 _PY_TYPES = {"int": int, "float": float, "bool": bool, "str": str}
 # The env group's schema: every MAIPPConfig field, typed (MAIPPConfig validates ranges).
@@ -460,7 +460,8 @@ def resumed_config(cfg: Any, overrides: list[str]) -> Any:
                          f"'{saved['algo']['name']}', not algo={cfg.algo.name}: start a new "
                          "run, or fine-tune its network with init=<path>")
     out, inherited = cfg.copy(), []
-    for path, value in _leaves(saved).items():
+    leaves = _leaves(saved)
+    for path, value in leaves.items():
         if (path.split(".")[0] in INVOCATION_FIELDS
                 or any(path == t or path.startswith(t + ".") for t in typed
                        if t not in ("algo", "env"))  # logger=wandb: log there from now on
@@ -475,8 +476,7 @@ def resumed_config(cfg: Any, overrides: list[str]) -> Any:
                 raise ValueError(f"resume={cfg.resume}: its {path}={value!r} does not fit "
                                  f"this code's config ({why}); type {path}=...") from err
     for path, value in SAVED_BEFORE.items():
-        if path not in typed and OmegaConf.select(OmegaConf.create(saved), path,
-                                                  default=_ABSENT) is _ABSENT:
+        if path not in typed and path not in leaves:
             inherited.append(f"{path}={value!r} (saved before the field existed)")
             OmegaConf.update(out, path, value, merge=False)
     if inherited:
@@ -504,7 +504,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
                       for s in (*suite.instance_seeds, *suite.trial_seeds)}
     for heldout in HELDOUT_SETS:
         seeds, trials = heldout_seeds(0, cfg.eval_episodes, heldout)
-        assert not protocol_seeds & {*seeds, *([trials] if isinstance(trials, int) else trials)}
+        assert not protocol_seeds & {*seeds, *trial_seeds(seeds, trials)}
 
     torch.manual_seed(cfg.seed)  # the network's initial weights
     learner = build_learner(cfg.algo, env_cfg.node_encoding_dim, env_cfg.interest_threshold,
