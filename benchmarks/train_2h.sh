@@ -70,6 +70,14 @@ for m in "$M1" "$M2" "$M3"; do  # minutes may be fractional (a short smoke run)
 done
 M12=$(python -c "print($M1 + $M2)")  # stage 2 resumes: its limit counts stage 1's minutes
 HERE=$(dirname "$0")
+# The choices and the export run benchmarks/*.py, whose imports find maipp_bench through its
+# installation alone (sys.path starts at benchmarks/): a stale or missing editable install
+# (2026-11-27: one pointing at a folder since gone) failed only after stage 2. Check first.
+ROOT=$(cd "$HERE/.." && pwd -P)
+FOUND=$(cd "$HERE" && python -c "import pathlib, maipp_bench
+print(pathlib.Path(maipp_bench.__file__).resolve().parents[1])" 2>/dev/null) || FOUND=""
+[[ $FOUND == "$ROOT" ]] \
+    || { echo "train_2h.sh: benchmarks/*.py import maipp_bench from '${FOUND:-nowhere}', not from this checkout $ROOT: install it first (pip install -e $ROOT)" >&2; exit 2; }
 S2=()  # stage 2's extra fields
 [[ $SELECT == 1 ]] && S2=(keep_snapshots=true snapshot_every=3)
 TRAIN="python -m maipp_bench.train algo=ours threads=2 progress=false total_updates=100000"

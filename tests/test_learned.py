@@ -501,6 +501,24 @@ def test_train_2h_rejects_a_bad_switch_before_training(tmp_path, variable, value
     assert not out.exists()
 
 
+@pytest.mark.parametrize(("body", "found"), [("", "elsewhere"),
+                                             ("raise ImportError('gone')", "nowhere")])
+def test_train_2h_refuses_a_maipp_bench_other_than_its_checkout(tmp_path, body, found):
+    """The held-out choices run benchmarks/*.py, which import the installed maipp_bench:
+    one from another folder (or none) is refused before training, not after stage 2."""
+    other = tmp_path / "elsewhere"
+    (other / "maipp_bench").mkdir(parents=True)
+    (other / "maipp_bench" / "__init__.py").write_text(body)
+    out = tmp_path / "run"
+    proc = subprocess.run(["bash", str(Path(__file__).parents[1] / "benchmarks" / "train_2h.sh"),
+                           str(out)], capture_output=True, text=True, timeout=60,
+                          env={**os.environ, "PYTHONPATH": str(other)})
+    assert proc.returncode == 2
+    shown = str(other) if found == "elsewhere" else "nowhere"
+    assert f"import maipp_bench from '{shown}', not from this checkout" in proc.stderr
+    assert not out.exists()
+
+
 def test_train_2h_runs_its_stages_and_the_choices_end_to_end(tmp_path):
     """benchmarks/train_2h.sh with SELECT=1 and FINAL=1 on the tiny task (OVERRIDES, typed
     after the script's own fields): three stages, the held-out choice of the start, the
@@ -508,9 +526,11 @@ def test_train_2h_runs_its_stages_and_the_choices_end_to_end(tmp_path):
     stage's command, and the final choice between the start and that file."""
     out = tmp_path / "run"
     tiny = [*TINY_TRAIN, "algo.intent_rollouts=2", "algo.intent_depth=2"]
+    # stage 3 gets 0.5 minutes: 5 updates (one snapshot to average) even on a busy box,
+    # where 0.3 once made fewer
     proc = subprocess.run(
         ["bash", str(Path(__file__).parents[1] / "benchmarks" / "train_2h.sh"), str(out), "3",
-         "0.02", "0.1", "0.3"], capture_output=True, text=True, timeout=600,
+         "0.02", "0.1", "0.5"], capture_output=True, text=True, timeout=600,
         env={**os.environ, "SELECT": "1", "SELECT_EPISODES": "2", "FINAL": "1",
              "FINAL_EPISODES": "2", "OVERRIDES": " ".join(tiny)})
     assert proc.returncode == 0, proc.stderr[-3000:]
