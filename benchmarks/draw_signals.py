@@ -28,10 +28,10 @@ ROOT = Path(__file__).resolve().parent.parent
 CARDS = ROOT / "docs" / "cards"
 # draw -> (stages 1-2 curve, stage 3 card) under docs/cards/ours_2h_intent_*, from the
 # sections of docs/results.md that report each draw ("The whole recipe in two hours on
-# both cores" to "A nineteenth run"). Draw 7 continued draw 6's stages 1-2 and draws 3-4
-# share seed 2's first 96 updates; the sixteenth to eighteenth kept their stage-3 start,
-# whose card holds stages 1-2, and set stage 3's average aside (the fifteenth and
-# nineteenth kept the average: their stages 1-2 are a curve file).
+# both cores" to "A twentieth run"). Draw 7 continued draw 6's stages 1-2 and draws 3-4
+# share seed 2's first 96 updates; the sixteenth to eighteenth and the twentieth kept
+# their stage-3 start, whose card holds stages 1-2, and set stage 3's average aside (the
+# fifteenth and nineteenth kept the average: their stages 1-2 are a curve file).
 DRAWS = {
     1: ("seed0_stages12.jsonl", "seed0.json"),
     2: ("seed1_stages12.jsonl", "seed1.json"),
@@ -52,6 +52,7 @@ DRAWS = {
     17: ("seed14_bf16_final.json", "seed14_bf16_final_stage3_avg.json"),
     18: ("seed15_bf16_final_h2.json", "seed15_bf16_final_h2_stage3_avg.json"),
     19: ("seed16_bf16_final_h2_stages12.jsonl", "seed16_bf16_final_h2.json"),
+    20: ("seed17_bf16_final_h2.json", "seed17_bf16_final_h2_stage3_avg.json"),
 }
 STAGE1_FRAMES = 1280  # 8 envs x 160 steps per stage-1 update; 16 envs after
 
