@@ -26,35 +26,42 @@ from scipy.stats import rankdata
 
 ROOT = Path(__file__).resolve().parent.parent
 CARDS = ROOT / "docs" / "cards"
-# draw -> (stages 1-2 curve, stage 3 card) under docs/cards/ours_2h_intent_*, from the
-# sections of docs/results.md that report each draw ("The whole recipe in two hours on
-# both cores" to "A twentieth run"). Draw 7 continued draw 6's stages 1-2 and draws 3-4
-# share seed 2's first 96 updates; the sixteenth to eighteenth and the twentieth kept
-# their stage-3 start, whose card holds stages 1-2, and set stage 3's average aside (the
-# fifteenth and nineteenth kept the average: their stages 1-2 are a curve file).
+# draw -> the prefix of its cards under docs/cards/ours_2h_intent_*, from the sections of
+# docs/results.md that report each draw ("The whole recipe in two hours on both cores"
+# to "A twentieth run"). Draw 7 continued draw 6's stages 1-2 and draws 3-4 share seed
+# 2's first 96 updates. Which card holds which stages: see `stage_cards`.
 DRAWS = {
-    1: ("seed0_stages12.jsonl", "seed0.json"),
-    2: ("seed1_stages12.jsonl", "seed1.json"),
-    3: ("seed2_stages12.jsonl", "seed2.json"),
-    4: ("seed2_lr3e-5_stages12.jsonl", "seed2_lr3e-5.json"),
-    5: ("seed3_lr3e-5_stages12.jsonl", "seed3_lr3e-5.json"),
-    6: ("seed4_lr3e-5_stages12.jsonl", "seed4_lr3e-5.json"),
-    7: ("seed4_m38-55-18_stages12.jsonl", "seed4_m38-55-18.json"),
-    8: ("seed5_select_stages12.jsonl", "seed5_select.json"),
-    9: ("seed6_select_stages12.jsonl", "seed6_select.json"),
-    10: ("seed7_select_stages12.jsonl", "seed7_select.json"),
-    11: ("seed8_bf16_select_stages12.jsonl", "seed8_bf16_select.json"),
-    12: ("seed9_bf16_select_stages12.jsonl", "seed9_bf16_select.json"),
-    13: ("seed10_bf16_lr1e-4_select_stages12.jsonl", "seed10_bf16_lr1e-4_select.json"),
-    14: ("seed11_bf16_lr1e-4_select_stages12.jsonl", "seed11_bf16_lr1e-4_select.json"),
-    15: ("seed12_bf16_final_stages12.jsonl", "seed12_bf16_final.json"),
-    16: ("seed13_bf16_final.json", "seed13_bf16_final_stage3_avg.json"),
-    17: ("seed14_bf16_final.json", "seed14_bf16_final_stage3_avg.json"),
-    18: ("seed15_bf16_final_h2.json", "seed15_bf16_final_h2_stage3_avg.json"),
-    19: ("seed16_bf16_final_h2_stages12.jsonl", "seed16_bf16_final_h2.json"),
-    20: ("seed17_bf16_final_h2.json", "seed17_bf16_final_h2_stage3_avg.json"),
+    1: "seed0",
+    2: "seed1",
+    3: "seed2",
+    4: "seed2_lr3e-5",
+    5: "seed3_lr3e-5",
+    6: "seed4_lr3e-5",
+    7: "seed4_m38-55-18",
+    8: "seed5_select",
+    9: "seed6_select",
+    10: "seed7_select",
+    11: "seed8_bf16_select",
+    12: "seed9_bf16_select",
+    13: "seed10_bf16_lr1e-4_select",
+    14: "seed11_bf16_lr1e-4_select",
+    15: "seed12_bf16_final",
+    16: "seed13_bf16_final",
+    17: "seed14_bf16_final",
+    18: "seed15_bf16_final_h2",
+    19: "seed16_bf16_final_h2",
+    20: "seed17_bf16_final_h2",
 }
 STAGE1_FRAMES = 1280  # 8 envs x 160 steps per stage-1 update; 16 envs after
+
+
+def stage_cards(prefix: str) -> tuple[str, str]:
+    """(stages 1-2 curve, stage 3 card) of a draw: a draw whose final choice kept stage 3's
+    start has that start's card (holding stages 1-2) and its set-aside average
+    (``_stage3_avg.json``); the others a curve file of stages 1-2 and the policy's card."""
+    if (CARDS / f"ours_2h_intent_{prefix}_stage3_avg.json").exists():
+        return f"{prefix}.json", f"{prefix}_stage3_avg.json"
+    return f"{prefix}_stages12.jsonl", f"{prefix}.json"
 
 
 def curve(name: str) -> list[dict]:
@@ -92,7 +99,7 @@ def window_mean(rows: list[dict], key: str) -> float:
 
 
 def features(draw: int) -> dict[str, float]:
-    s12, s3 = (curve(name) for name in DRAWS[draw])
+    s12, s3 = (curve(name) for name in stage_cards(DRAWS[draw]))
     for rows in (s12, s3):
         ended = np.diff([0] + [r["episodes"] for r in rows])
         rows[:] = [{**r, "ended": int(n)} for r, n in zip(rows, ended)]
