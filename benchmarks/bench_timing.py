@@ -1,7 +1,9 @@
-"""Timing helper shared by the benchmark scripts (run as ``python benchmarks/<script>.py``)."""
+"""Timing helpers shared by the benchmark scripts (run as ``python benchmarks/<script>.py``)."""
 
 from __future__ import annotations
 
+import cProfile
+import pstats
 import time
 from collections.abc import Callable
 
@@ -13,3 +15,16 @@ def seconds_per_call(fn: Callable[[], object], repeats: int) -> float:
     for _ in range(repeats):
         fn()
     return (time.perf_counter() - start) / repeats
+
+
+def profiled_seconds(prof: cProfile.Profile,
+                     phases: dict[str, tuple[str, str]]) -> dict[str, tuple[float, int]]:
+    """Cumulative seconds and calls of each phase of a finished profile: label ->
+    (file suffix, function name) as cProfile names them; every match is summed."""
+    stats = pstats.Stats(prof).stats
+    out = {}
+    for label, (suffix, func) in phases.items():
+        hits = [v for (file, _, name), v in stats.items()
+                if name == func and file.endswith(suffix)]
+        out[label] = (sum(v[3] for v in hits), sum(v[1] for v in hits))
+    return out

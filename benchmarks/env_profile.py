@@ -25,13 +25,12 @@ from __future__ import annotations
 import argparse
 import contextlib
 import cProfile
-import pstats
 import statistics
 import time
 
 import torch
 import torch.nn.functional as F
-from bench_timing import seconds_per_call
+from bench_timing import profiled_seconds, seconds_per_call
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
@@ -67,10 +66,8 @@ def steady_env(n_envs: int, warmup: int, cls: type[MAIPPEnv] = MAIPPEnv,
 
 def phase_ms(prof: cProfile.Profile, steps: int) -> dict[str, float]:
     """Cumulative milliseconds per step of each of ``PHASES`` in a finished profile."""
-    stats = pstats.Stats(prof).stats
-    return {label: 1000 * sum(v[3] for (file, _, name), v in stats.items()
-                              if name == func and file.endswith(suffix)) / steps
-            for label, (suffix, func) in PHASES.items()}
+    return {label: 1000 * seconds / steps
+            for label, (seconds, _) in profiled_seconds(prof, PHASES).items()}
 
 
 def profile_steps(n_envs: int, warmup: int, steps: int) -> dict[str, float]:

@@ -13,6 +13,10 @@ card (the wall time of every update is in its curve), or from a run folder or it
 ``curve.jsonl``; ``--split U`` also reports updates 1..U and U+1.. apart (e.g. a run
 resumed with other code at update U).
 
+``--profile`` runs the timed updates under ``cProfile`` and adds the seconds and calls
+per update of :data:`PHASES` (collection, teammates' intents and their parts, env steps,
+backward passes).
+
 ``--ratio BASE.json OTHER.json`` prints how much faster OTHER ran than BASE (two
 ``--out`` files measured side by side), per whole update and per phase.
 
@@ -26,6 +30,7 @@ Usage (Hydra overrides as for training):
 from __future__ import annotations
 
 import argparse
+import cProfile
 import json
 import os
 import platform
@@ -33,6 +38,7 @@ import time
 from pathlib import Path
 
 import torch
+from bench_timing import profiled_seconds
 from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
@@ -42,6 +48,20 @@ from maipp_bench.algos.ppo import build_learner
 from maipp_bench.allocator import keep_freed_memory
 from maipp_bench.curves import read_curve
 from maipp_bench.envs.config import MAIPPConfig
+
+# label -> (file suffix, function name): where a timed update goes (--profile)
+PHASES = {
+    "collection (Collector.next)": ("collectors/_single.py", "next"),
+    "  teammates' TI intents (fantasy_rollouts)": ("rollouts.py", "fantasy_rollouts"),
+    "    network passes (AttentionPolicyNet.forward)": ("attention.py", "forward"),
+    "      encoder (encode)": ("attention.py", "encode"),
+    "        last layer's row attention (attend_rows)": ("attention.py", "attend_rows"),
+    "  GP updates, the intents' fantasy ones and the env's (GPBelief.add)": ("belief.py",
+                                                                             "add"),
+    "  env steps (MAIPPEnv._step)": ("maipp_env.py", "_step"),
+    "learning's backward passes (torch.autograd.backward)": ("torch/autograd/__init__.py",
+                                                             "backward"),
+}
 
 
 def card_segment(curve: list[dict], start: int, stop: int) -> dict:
@@ -76,6 +96,9 @@ def main() -> None:
                         "(the reference for benchmarks/ti_distinct_paths.py's speed-up)")
     p.add_argument("--split", type=int, nargs="*", default=[],
                    help="with --card: also report the updates between these update numbers")
+    p.add_argument("--profile", action="store_true",
+                   help="cProfile the timed updates: seconds and calls of PHASES (the "
+                        "profiler's overhead slows them, so their speeds are not comparable)")
     p.add_argument("--ratio", nargs=2, metavar=("BASE", "OTHER"),
                    help="two --out files: how much faster OTHER ran than BASE")
     args = p.parse_args()
@@ -109,8 +132,11 @@ def main() -> None:
     _, collector, buffer = train_mod.make_collection(cfg, env_cfg, learner)
     times = {"collect": 0.0, "decisions": 0.0, "learn": 0.0}
     frames = decisions = passes = 0
+    prof = cProfile.Profile()
     with rollouts.path_merging(not args.every_rollout):
         for update in range(args.updates + 1):
+            if update == 1 and args.profile:  # the first update warms up
+                prof.enable()
             t0 = time.perf_counter()
             batch = collector.next()
             t1 = time.perf_counter()
@@ -125,6 +151,7 @@ def main() -> None:
                 times["learn"] += t3 - t2
                 frames += batch.numel()
                 decisions += rows.numel()
+    prof.disable()
     collector.shutdown()
     total = sum(times.values())
     result = {
@@ -139,6 +166,9 @@ def main() -> None:
         "collect_frames_per_s": frames / times["collect"],
         "learn_rows_per_s": passes / times["learn"],
     }
+    if args.profile:  # seconds per timed update
+        result["profile"] = {label: {"seconds": s / args.updates, "calls": n / args.updates}
+                             for label, (s, n) in profiled_seconds(prof, PHASES).items()}
     print(json.dumps(result, indent=1))
     if args.out:
         with open(args.out, "w") as f:

@@ -1364,3 +1364,18 @@ def test_snapshots_every_n_updates_need_no_evaluation(tmp_path):
         with pytest.raises(ValueError, match=match):
             train(compose_train(*TINY_TRAIN, *bad), tmp_path / "bad")
         assert not (tmp_path / "bad" / "checkpoint.pt").exists()
+
+
+def test_train_throughput_profile_names_where_the_update_goes(tmp_path):
+    """benchmarks/train_throughput.py --profile reports every phase it names as found in
+    the profile (a renamed function would show 0 calls), the intents inside collection."""
+    out = tmp_path / "t.json"
+    proc = subprocess.run(
+        [sys.executable, str(Path(__file__).parents[1] / "benchmarks" / "train_throughput.py"),
+         *TINY_TRAIN, "algo.intent_rollouts=2", "algo.intent_depth=2", "--updates", "1",
+         "--profile", "--out", str(out)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    phases = json.loads(out.read_text())["profile"]
+    assert all(p["calls"] > 0 for p in phases.values()), phases
+    seconds = [p["seconds"] for p in phases.values()]
+    assert seconds[1] <= seconds[0]  # teammates' intents are part of collection
