@@ -2,9 +2,11 @@
 ``benchmarks/train_2h.sh`` with ``SELECT=1`` (docs/results.md, "An eighth run") and
 ``FINAL=1`` ("The final choice").
 
-Every candidate plays ``--method`` on the same ``--episodes`` held-out episodes (training's
-held-out seeds from the ``--first``-th on, never the protocol's) at each ``--budget``; the
-one with the lowest score is chosen, ties going to the later candidate. The score is the
+Every candidate plays ``--method`` on the same held-out episodes (training's held-out
+seeds from the ``--first``-th on, never the protocol's) at each ``--budget``:
+``--episodes`` of them, one count for every budget or one per budget in the order of
+``--budget`` (a B = 5 episode costs several B = 2 ones); the one with the lowest score is
+chosen, ties going to the later candidate. The score is the
 mean Tr(P_f) at one budget and, at several budgets, the geometric mean of their means
 (training's ``eval/trace``). The candidates are either ``--run``'s own ``checkpoint.pt``
 and the snapshots of its ``snapshots/`` from update ``last - window`` on (oldest first),
@@ -20,6 +22,8 @@ Usage:
         --budget 2 --episodes 160 --workers 2 --out outputs/h9/select.json
     python benchmarks/select_snapshot.py --candidates start.pt late.pt avg.pt \\
         --budget 4 5 --episodes 64 --first 160 --workers 2 --out final_select.json
+    python benchmarks/select_snapshot.py --run outputs/h9/stage2 --window 15 \\
+        --budget 2 5 --episodes 160 64 --workers 2 --out outputs/h9/select.json
 """
 
 from __future__ import annotations
@@ -95,7 +99,8 @@ def main() -> None:
     p.add_argument("--method", default="ours_ti")
     p.add_argument("--budget", type=float, nargs="+", default=[2.0],
                    help="one or more budgets (several: geometric mean of the means)")
-    p.add_argument("--episodes", type=int, default=160)
+    p.add_argument("--episodes", type=int, nargs="+", default=[160],
+                   help="held-out episodes per budget: one count, or one per --budget")
     p.add_argument("--first", type=int, default=0, metavar="N",
                    help="start at the N-th held-out seed (e.g. after those of an earlier "
                         "choice, so that the two choices see different worlds)")
@@ -104,7 +109,13 @@ def main() -> None:
     p.add_argument("--out", type=Path, help="write the scores and the choice here (JSON)")
     args = p.parse_args()
     budgets = sorted(set(args.budget))
-    if (args.window < 0 or args.episodes < 2 or args.workers < 1 or args.first < 0
+    if len(args.episodes) not in (1, len(args.budget)) or len(budgets) != len(args.budget):
+        p.error(f"--episodes takes one count or one per budget, and each budget once; got "
+                f"--budget {' '.join(f'{b:g}' for b in args.budget)} --episodes "
+                f"{' '.join(map(str, args.episodes))}")
+    episodes_at = dict(zip(args.budget, args.episodes * len(args.budget)
+                          if len(args.episodes) == 1 else args.episodes))
+    if (args.window < 0 or min(args.episodes) < 2 or args.workers < 1 or args.first < 0
             or not all(math.isfinite(b) and b > 0 for b in budgets)):
         p.error("--window must be >= 0, --episodes >= 2, --workers >= 1, --first >= 0, "
                 "budgets > 0")
@@ -118,7 +129,7 @@ def main() -> None:
     start = time.perf_counter()
     with ProcessPoolExecutor(args.workers, mp_context=get_context("spawn"),
                              initializer=_init_worker) as pool:
-        futures = [[pool.submit(_traces, str(path), args.method, b, args.episodes, args.first,
+        futures = [[pool.submit(_traces, str(path), args.method, b, episodes_at[b], args.first,
                                 args.heldout_set)
                     for b in budgets] for _, path in found]
         traces = [[f.result() for f in per_budget] for per_budget in futures]
@@ -146,7 +157,9 @@ def main() -> None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps({
             "method": args.method, "budget": budgets[0] if len(budgets) == 1 else budgets,
-            "episodes": args.episodes, "first": args.first, "heldout_set": args.heldout_set,
+            "episodes": (args.episodes[0] if len(set(episodes_at.values())) == 1
+                         else [episodes_at[b] for b in budgets]),  # as "budget" lists them
+            "first": args.first, "heldout_set": args.heldout_set,
             "window": args.window if args.run is not None else None,
             "seconds": round(seconds, 1), "candidates": table, "chosen": best},
             indent=2) + "\n")

@@ -17,10 +17,13 @@
 # stage 2's final update; the minutes of that evaluation come out of the two hours, so the
 # default stage minutes are then 38 / 42 / 28 (108 minutes of updates; the choice, 6
 # candidates x 160 episodes on two cores, took 7 minutes in the eighth draw). Stage
-# minutes typed by hand, or a wider SELECT_WINDOW / more SELECT_EPISODES, get no such
-# allowance. The exported card's wall_s_with_init counts stage 2 up to the chosen update
-# only: the run's whole wall clock is in OUT_DIR/wall.txt, the choice's own seconds in
-# OUT_DIR/select.json.
+# minutes typed by hand, or a wider SELECT_WINDOW / more SELECT_EPISODES / other
+# SELECT_BUDGETS, get no such allowance. SELECT_BUDGETS (default "2") chooses on several
+# budgets' geometric mean instead, with SELECT_EPISODES one count for all or one per
+# budget (e.g. SELECT_BUDGETS="2 5" SELECT_EPISODES="160 64": B = 5, where most draws
+# miss, costs about a minute per candidate per 64 episodes on the two cores). The
+# exported card's wall_s_with_init counts stage 2 up to the chosen update only: the run's
+# whole wall clock is in OUT_DIR/wall.txt, the choice's own seconds in OUT_DIR/select.json.
 # With FINAL=1 (2026-11-27), the policy file is chosen after stage 3 on held-out episodes
 # at B = 4-5 between stage 3's start and avg.pt (benchmarks/final_choice.sh: OUT_DIR/
 # final.pt, final.json, final_select.json); its minutes (about 4 with 64 episodes,
@@ -30,7 +33,7 @@
 # episode, as the protocol draws them; maipp_bench/heldout.py HELDOUT_SETS); the draws before
 # played set 1, every held-out episode on one roadmap (docs/results.md, "Held-out episodes
 # share one roadmap"). HELDOUT_SET=1 reproduces those choices.
-# Usage: [SELECT=1] [FINAL=1] [OVERRIDES="k=v ..."] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
+# Usage: [SELECT=1 [SELECT_BUDGETS="2 5" SELECT_EPISODES="160 64"]] [FINAL=1] [OVERRIDES="k=v ..."] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
 # OVERRIDES are Hydra overrides typed after each stage's own fields, so they win (e.g.
 # algo.precision=bf16; the tests' tiny task: env=tiny n_envs=3 ...); none by default.
 # They are split on spaces (no value with a space) and reach the three training stages,
@@ -45,6 +48,9 @@ SELECT=${SELECT:-0}
 FINAL=${FINAL:-0}
 SELECT_WINDOW=${SELECT_WINDOW:-15}
 SELECT_EPISODES=${SELECT_EPISODES:-160}
+SELECT_BUDGETS=${SELECT_BUDGETS:-2}
+read -ra SELECT_EPS <<< "$SELECT_EPISODES"
+read -ra SELECT_BS <<< "$SELECT_BUDGETS"
 export HELDOUT_SET=${HELDOUT_SET:-2}  # final_choice.sh reads it too
 [[ $SELECT == 0 || $SELECT == 1 ]] \
     || { echo "train_2h.sh: SELECT must be 0 or 1, got '$SELECT'" >&2; exit 2; }
@@ -53,10 +59,16 @@ export HELDOUT_SET=${HELDOUT_SET:-2}  # final_choice.sh reads it too
 [[ $HELDOUT_SET == 1 || $HELDOUT_SET == 2 ]] \
     || { echo "train_2h.sh: HELDOUT_SET must be 1 or 2, got '$HELDOUT_SET'" >&2; exit 2; }
 if [[ $SELECT == 1 ]]; then D2=42 D3=$((FINAL == 1 ? 26 : 28)); else D2=37 D3=36; fi
-for n in "$SELECT_EPISODES" "${FINAL_EPISODES:-64}"; do  # not found out after two hours
+for n in "${SELECT_EPS[@]}" "${FINAL_EPISODES:-64}"; do  # not found out after two hours
     [[ $n =~ ^[0-9]+$ ]] && ((n >= 2)) \
         || { echo "train_2h.sh: SELECT_EPISODES and FINAL_EPISODES must be integers >= 2, got '$n'" >&2; exit 2; }
 done
+for b in "${SELECT_BS[@]}"; do
+    [[ $b =~ ^[0-9]+([.][0-9]+)?$ ]] && [[ ! $b =~ ^0+([.]0+)?$ ]] \
+        || { echo "train_2h.sh: SELECT_BUDGETS must be positive numbers, got '$b'" >&2; exit 2; }
+done
+((${#SELECT_BS[@]} >= 1)) && ((${#SELECT_EPS[@]} == 1 || ${#SELECT_EPS[@]} == ${#SELECT_BS[@]})) \
+    || { echo "train_2h.sh: SELECT_EPISODES takes one count or one per budget of SELECT_BUDGETS ('$SELECT_BUDGETS'), got '$SELECT_EPISODES'" >&2; exit 2; }
 M1=${3:-38}
 M2=${4:-$D2}
 M3=${5:-$D3}
@@ -101,11 +113,11 @@ START="$OUT/stage2/checkpoint.pt"
 NOTE="fixed before the run"
 if [[ $SELECT == 1 ]]; then
     START=$(python "$HERE/select_snapshot.py" --run "$OUT/stage2" --window "$SELECT_WINDOW" \
-        --method ours_ti --budget 2 --episodes "$SELECT_EPISODES" --workers 2 \
+        --method ours_ti --budget "${SELECT_BS[@]}" --episodes "${SELECT_EPS[@]}" --workers 2 \
         --heldout-set "$HELDOUT_SET" \
         --out "$OUT/select.json" | tail -1)
     echo "selected $START $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
-    NOTE="fixed before the run; stage 3 started from $START, chosen on held-out episodes at B = 2 ($OUT/select.json); wall_s_with_init leaves out the updates of stage 2 after it and the minutes of the choice; the whole wall clock of the run is in $OUT/wall.txt"
+    NOTE="fixed before the run; stage 3 started from $START, chosen on held-out episodes at B = $(IFS=,; echo "${SELECT_BS[*]}") ($OUT/select.json); wall_s_with_init leaves out the updates of stage 2 after it and the minutes of the choice; the whole wall clock of the run is in $OUT/wall.txt"
 fi
 $TRAIN init="$START" seed="$((SEED + 2))" algo.lr="$LR3" \
     algo.intent_rollouts=8 algo.intent_depth=5 n_envs=16 algo.epochs=4 algo.target_kl=0.02 \
@@ -117,6 +129,7 @@ python -m maipp_bench.train algo=ours resume="$OUT/stage3/checkpoint.pt" total_u
     hydra.run.dir="$OUT/export" \
     "export_note='benchmarks/train_2h.sh: the uniform average of every snapshot of stage 3 (updates 5-$LAST), $NOTE'"
 if [[ $FINAL == 1 ]]; then  # on held-out worlds after those SELECT=1 chose the start on
-    FINAL_FIRST=${FINAL_FIRST:-$SELECT_EPISODES} bash "$HERE/final_choice.sh" "$OUT"
+    FIRST=$(printf '%s\n' "${SELECT_EPS[@]}" | sort -n | tail -1)
+    FINAL_FIRST=${FINAL_FIRST:-$FIRST} bash "$HERE/final_choice.sh" "$OUT"
 fi
 echo "end $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"

@@ -490,6 +490,8 @@ def test_training_scripts_reject_bad_arguments_before_training(script, args, mes
     ("SELECT", "yes", "SELECT must be 0 or 1"), ("FINAL", "yes", "FINAL must be 0 or 1"),
     ("FINAL_EPISODES", "1", "must be integers >= 2, got '1'"),
     ("SELECT_EPISODES", "many", "must be integers >= 2, got 'many'"),
+    ("SELECT_EPISODES", "160 64", "one count or one per budget of SELECT_BUDGETS ('2')"),
+    ("SELECT_BUDGETS", "2 0", "SELECT_BUDGETS must be positive numbers, got '0'"),
     ("HELDOUT_SET", "3", "HELDOUT_SET must be 1 or 2, got '3'")])
 def test_train_2h_rejects_a_bad_switch_before_training(tmp_path, variable, value, message):
     out = tmp_path / "run"
@@ -531,13 +533,13 @@ def test_train_2h_runs_its_stages_and_the_choices_end_to_end(tmp_path):
     proc = subprocess.run(
         ["bash", str(Path(__file__).parents[1] / "benchmarks" / "train_2h.sh"), str(out), "3",
          "0.02", "0.1", "0.5"], capture_output=True, text=True, timeout=600,
-        env={**os.environ, "SELECT": "1", "SELECT_EPISODES": "2", "FINAL": "1",
-             "FINAL_EPISODES": "2", "OVERRIDES": " ".join(tiny)})
+        env={**os.environ, "SELECT": "1", "SELECT_BUDGETS": "5 2", "SELECT_EPISODES": "2 3",
+             "FINAL": "1", "FINAL_EPISODES": "2", "OVERRIDES": " ".join(tiny)})
     assert proc.returncode == 0, proc.stderr[-3000:]
     stamps = [line.split()[0] for line in (out / "wall.txt").read_text().splitlines()]
     assert stamps == ["start", "stage1", "stage2", "selected", "final", "end"]
     choice = json.loads((out / "select.json").read_text())
-    assert choice["budget"] == 2.0 and choice["episodes"] == 2
+    assert choice["budget"] == [2.0, 5.0] and choice["episodes"] == [3, 2]  # one per budget
     assert choice["heldout_set"] == 2  # a roadmap per held-out episode, as the protocol
     card = json.loads((out / "avg.json").read_text())
     averaged = card["averaged_updates"]
@@ -559,7 +561,8 @@ def test_train_2h_runs_its_stages_and_the_choices_end_to_end(tmp_path):
     chosen = Path(final["chosen"]["path"])
     assert (out / "final.pt").read_bytes() == chosen.read_bytes()
     assert (out / "final.json").read_text() == chosen.with_suffix(".json").read_text()
-    assert final["first"] == 2  # after the SELECT_EPISODES worlds the start was chosen on
+    assert final["first"] == 3  # after the most SELECT_EPISODES worlds the start was chosen on
+    assert "chosen on held-out episodes at B = 5,2 (" in card["selected_by"]
     start = json.loads((out / "start.json").read_text())
     assert start["selected_update"] == choice["chosen"]["update"]
 
@@ -655,20 +658,30 @@ def test_select_snapshot_scores_the_window_and_picks_the_lowest(tiny_checkpoint,
                            str(run / "checkpoint.pt")], capture_output=True, text=True,
                           timeout=120)
     assert both.returncode == 2 and "not allowed with argument" in both.stderr
-    # --candidates at two budgets: equal scores go to the later file
+    # --candidates at two budgets, episodes per budget in --budget's order: equal scores
+    # go to the later file
     shutil.copy(run / "checkpoint.pt", tmp_path / "copy.pt")
+    common = ["--first", "7", "--workers", "1", "--heldout-set", "1"]
     tie = subprocess.run([sys.executable, str(script), "--candidates",
                           str(run / "checkpoint.pt"), str(tmp_path / "copy.pt"), "--budget",
-                          "4", "5", "--episodes", "2", "--first", "7", "--workers", "1",
-                          "--heldout-set", "1", "--out", str(out)],
+                          "5", "4", "--episodes", "3", "2", *common, "--out", str(out)],
                          capture_output=True, text=True, timeout=300)
     assert tie.returncode == 0, tie.stderr
     result = json.loads(out.read_text())
     assert result["first"] == 7 and result["budget"] == [4.0, 5.0]
-    assert result["heldout_set"] == 1
+    assert result["episodes"] == [2, 3] and result["heldout_set"] == 1
     first, copy_ = result["candidates"]
     assert first["mean"] == copy_["mean"] and copy_["minus_end_B5"] == 0.0
     assert result["chosen"]["path"] == tie.stdout.strip() == str(tmp_path / "copy.pt")
+    alone = subprocess.run([sys.executable, str(script), "--candidates", str(tmp_path / "copy.pt"),
+                            "--budget", "5", "--episodes", "3", *common, "--out", str(out)],
+                           capture_output=True, text=True, timeout=300)
+    assert alone.returncode == 0, alone.stderr  # B = 5 played its own 3 episodes above
+    assert json.loads(out.read_text())["chosen"]["mean"] == copy_["mean_B5"]
+    counts = subprocess.run([sys.executable, str(script), "--run", str(run), "--budget", "2",
+                             "5", "--episodes", "2", "3", "4"], capture_output=True, text=True,
+                            timeout=120)
+    assert counts.returncode == 2 and "one count or one per budget" in counts.stderr
 
 
 def test_paired_subset_leaves_out_excluded_episodes_and_names_the_worst(tmp_path):
