@@ -5,7 +5,7 @@
 Every candidate plays ``--method`` on the same held-out episodes (training's held-out
 seeds from the ``--first``-th on, never the protocol's) at each ``--budget``:
 ``--episodes`` of them, one count for every budget or one per budget in the order of
-``--budget`` (a B = 5 episode costs several B = 2 ones); the one with the lowest score is
+``--budget`` (a B = 5 episode costs about two B = 2 ones); the one with the lowest score is
 chosen, ties going to the later candidate. The score is the
 mean Tr(P_f) at one budget and, at several budgets, the geometric mean of their means
 (training's ``eval/trace``). The candidates are either ``--run``'s own ``checkpoint.pt``
@@ -109,10 +109,12 @@ def main() -> None:
     p.add_argument("--out", type=Path, help="write the scores and the choice here (JSON)")
     args = p.parse_args()
     budgets = sorted(set(args.budget))
-    if len(args.episodes) not in (1, len(args.budget)) or len(budgets) != len(args.budget):
-        p.error(f"--episodes takes one count or one per budget, and each budget once; got "
-                f"--budget {' '.join(f'{b:g}' for b in args.budget)} --episodes "
-                f"{' '.join(map(str, args.episodes))}")
+    typed = " ".join(f"{b:g}" for b in args.budget)
+    if len(budgets) != len(args.budget):
+        p.error(f"--budget takes each budget once, got {typed}")
+    if len(args.episodes) not in (1, len(args.budget)):
+        p.error(f"--episodes takes one count or one per budget, got --budget {typed} "
+                f"--episodes {' '.join(map(str, args.episodes))}")
     episodes_at = dict(zip(args.budget, args.episodes * len(args.budget)
                           if len(args.episodes) == 1 else args.episodes))
     if (args.window < 0 or min(args.episodes) < 2 or args.workers < 1 or args.first < 0

@@ -67,7 +67,10 @@ for b in "${SELECT_BS[@]}"; do
     [[ $b =~ ^[0-9]+([.][0-9]+)?$ ]] && [[ ! $b =~ ^0+([.]0+)?$ ]] \
         || { echo "train_2h.sh: SELECT_BUDGETS must be positive numbers, got '$b'" >&2; exit 2; }
 done
-((${#SELECT_BS[@]} >= 1)) && ((${#SELECT_EPS[@]} == 1 || ${#SELECT_EPS[@]} == ${#SELECT_BS[@]})) \
+((${#SELECT_BS[@]} >= 1)) && python -c "import sys; b = [float(x) for x in sys.argv[1:]]
+sys.exit(len(set(b)) != len(b))" "${SELECT_BS[@]}" \
+    || { echo "train_2h.sh: SELECT_BUDGETS must name each budget once, got '$SELECT_BUDGETS'" >&2; exit 2; }
+((${#SELECT_EPS[@]} == 1 || ${#SELECT_EPS[@]} == ${#SELECT_BS[@]})) \
     || { echo "train_2h.sh: SELECT_EPISODES takes one count or one per budget of SELECT_BUDGETS ('$SELECT_BUDGETS'), got '$SELECT_EPISODES'" >&2; exit 2; }
 M1=${3:-38}
 M2=${4:-$D2}
@@ -117,7 +120,7 @@ if [[ $SELECT == 1 ]]; then
         --heldout-set "$HELDOUT_SET" \
         --out "$OUT/select.json" | tail -1)
     echo "selected $START $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
-    NOTE="fixed before the run; stage 3 started from $START, chosen on held-out episodes at B = $(IFS=,; echo "${SELECT_BS[*]}") ($OUT/select.json); wall_s_with_init leaves out the updates of stage 2 after it and the minutes of the choice; the whole wall clock of the run is in $OUT/wall.txt"
+    NOTE="fixed before the run; stage 3 started from $START, chosen on held-out episodes at B = $(printf '%s\n' "${SELECT_BS[@]}" | sort -g | paste -sd ' ') ($OUT/select.json); wall_s_with_init leaves out the updates of stage 2 after it and the minutes of the choice; the whole wall clock of the run is in $OUT/wall.txt"
 fi
 $TRAIN init="$START" seed="$((SEED + 2))" algo.lr="$LR3" \
     algo.intent_rollouts=8 algo.intent_depth=5 n_envs=16 algo.epochs=4 algo.target_kl=0.02 \

@@ -492,6 +492,8 @@ def test_training_scripts_reject_bad_arguments_before_training(script, args, mes
     ("SELECT_EPISODES", "many", "must be integers >= 2, got 'many'"),
     ("SELECT_EPISODES", "160 64", "one count or one per budget of SELECT_BUDGETS ('2')"),
     ("SELECT_BUDGETS", "2 0", "SELECT_BUDGETS must be positive numbers, got '0'"),
+    ("SELECT_BUDGETS", "2 2.0", "SELECT_BUDGETS must name each budget once, got '2 2.0'"),
+    ("SELECT_BUDGETS", " ", "SELECT_BUDGETS must name each budget once"),
     ("HELDOUT_SET", "3", "HELDOUT_SET must be 1 or 2, got '3'")])
 def test_train_2h_rejects_a_bad_switch_before_training(tmp_path, variable, value, message):
     out = tmp_path / "run"
@@ -533,13 +535,13 @@ def test_train_2h_runs_its_stages_and_the_choices_end_to_end(tmp_path):
     proc = subprocess.run(
         ["bash", str(Path(__file__).parents[1] / "benchmarks" / "train_2h.sh"), str(out), "3",
          "0.02", "0.1", "0.5"], capture_output=True, text=True, timeout=600,
-        env={**os.environ, "SELECT": "1", "SELECT_BUDGETS": "5 2", "SELECT_EPISODES": "2 3",
+        env={**os.environ, "SELECT": "1", "SELECT_BUDGETS": "5 2 4", "SELECT_EPISODES": "2 3 2",
              "FINAL": "1", "FINAL_EPISODES": "2", "OVERRIDES": " ".join(tiny)})
     assert proc.returncode == 0, proc.stderr[-3000:]
     stamps = [line.split()[0] for line in (out / "wall.txt").read_text().splitlines()]
     assert stamps == ["start", "stage1", "stage2", "selected", "final", "end"]
     choice = json.loads((out / "select.json").read_text())
-    assert choice["budget"] == [2.0, 5.0] and choice["episodes"] == [3, 2]  # one per budget
+    assert choice["budget"] == [2.0, 4.0, 5.0] and choice["episodes"] == [3, 2, 2]  # per budget
     assert choice["heldout_set"] == 2  # a roadmap per held-out episode, as the protocol
     card = json.loads((out / "avg.json").read_text())
     averaged = card["averaged_updates"]
@@ -562,7 +564,7 @@ def test_train_2h_runs_its_stages_and_the_choices_end_to_end(tmp_path):
     assert (out / "final.pt").read_bytes() == chosen.read_bytes()
     assert (out / "final.json").read_text() == chosen.with_suffix(".json").read_text()
     assert final["first"] == 3  # after the most SELECT_EPISODES worlds the start was chosen on
-    assert "chosen on held-out episodes at B = 5,2 (" in card["selected_by"]
+    assert "chosen on held-out episodes at B = 2 4 5 (" in card["selected_by"]
     start = json.loads((out / "start.json").read_text())
     assert start["selected_update"] == choice["chosen"]["update"]
 
@@ -682,6 +684,9 @@ def test_select_snapshot_scores_the_window_and_picks_the_lowest(tiny_checkpoint,
                              "5", "--episodes", "2", "3", "4"], capture_output=True, text=True,
                             timeout=120)
     assert counts.returncode == 2 and "one count or one per budget" in counts.stderr
+    twice = subprocess.run([sys.executable, str(script), "--run", str(run), "--budget", "2",
+                            "2.0"], capture_output=True, text=True, timeout=120)
+    assert twice.returncode == 2 and "--budget takes each budget once, got 2 2" in twice.stderr
 
 
 def test_paired_subset_leaves_out_excluded_episodes_and_names_the_worst(tmp_path):
