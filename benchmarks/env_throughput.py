@@ -55,6 +55,7 @@ from reference_env import ReferenceMAIPPEnv  # noqa: E402
 
 from maipp_bench.envs.config import MAIPPConfig  # noqa: E402
 from maipp_bench.envs.maipp_env import MAIPPEnv  # noqa: E402
+from maipp_bench.hardware import cpu_model, native_bf16  # noqa: E402
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -85,22 +86,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
-def cpu_model() -> str | None:
-    """The CPU model name (platform.processor() is often empty on Linux)."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return None
-
-
 def machine_info(device: str) -> dict:
     info = {
         "platform": platform.platform(),
         "processor": platform.processor(),
         "cpu_model": cpu_model(),
+        "native_bf16": native_bf16(),
         "machine": platform.machine(),
         "cpu_count": os.cpu_count(),
         "python": platform.python_version(),

@@ -35,7 +35,8 @@
 # share one roadmap"). HELDOUT_SET=1 reproduces those choices.
 # Usage: [SELECT=1 [SELECT_BUDGETS="2 5" SELECT_EPISODES="160 64"]] [FINAL=1] [OVERRIDES="k=v ..."] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
 # OVERRIDES are Hydra overrides typed after each stage's own fields, so they win (e.g.
-# algo.precision=bf16; the tests' tiny task: env=tiny n_envs=3 ...); none by default.
+# algo.precision=bf16 on a CPU with native bf16, half float32's speed elsewhere; the tests'
+# tiny task: env=tiny n_envs=3 ...); none by default.
 # They are split on spaces (no value with a space) and reach the three training stages,
 # not the choice or the export (which read the run's own config).
 # LR3 is stage 3's Adam learning rate: 3e-5 by default since 2026-11-26 (1e-4, the paper's,

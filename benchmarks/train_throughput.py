@@ -33,7 +33,6 @@ import argparse
 import cProfile
 import json
 import os
-import platform
 import time
 from pathlib import Path
 
@@ -48,6 +47,7 @@ from maipp_bench.algos.ppo import build_learner
 from maipp_bench.allocator import keep_freed_memory
 from maipp_bench.curves import read_curve
 from maipp_bench.envs.config import MAIPPConfig
+from maipp_bench.hardware import machine_name
 
 # label -> (file suffix, function name): where a timed update goes (--profile)
 PHASES = {
@@ -156,8 +156,8 @@ def main() -> None:
     total = sum(times.values())
     result = {
         "overrides": args.overrides, "updates": args.updates,
-        "machine": f"{platform.machine()}, {os.cpu_count()} cores, "
-                   f"{torch.get_num_threads()} torch thread(s), device {cfg.device}",
+        "machine": f"{machine_name()}, {torch.get_num_threads()} torch thread(s), "
+                   f"device {cfg.device}",
         "load_avg": os.getloadavg(),
         "seconds_per_update": total / args.updates,
         "share": {k: v / total for k, v in times.items()},

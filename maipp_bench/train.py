@@ -18,7 +18,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import platform
 import shlex
 import sys
 import time
@@ -59,6 +58,7 @@ from maipp_bench.allocator import keep_freed_memory
 from maipp_bench.envs import rng
 from maipp_bench.envs.config import MAIPPConfig, check_device
 from maipp_bench.envs.maipp_env import MAIPPEnv
+from maipp_bench.hardware import cpu_model, machine_name, native_bf16
 from maipp_bench.heldout import HELDOUT_SETS, check_heldout, heldout_seeds
 from maipp_bench.protocol.leaderboard import git_commit
 from maipp_bench.protocol.protocol import file_sha256, load_protocol
@@ -308,6 +308,16 @@ def warn_unseen_intents(cfg: Any, spec: MethodSpec) -> None:
                       f"the snapshots under TI afterwards", stacklevel=2)
 
 
+def warn_emulated_bf16(precision: str, device: str) -> None:
+    """Warn when ``algo.precision=bf16`` trains on a CPU that emulates bfloat16: there an
+    update ran at about half float32's speed (docs/performance.md, "bf16 where it is
+    emulated"), so the choice costs time instead of saving it."""
+    if precision == "bf16" and torch.device(device).type == "cpu" and not native_bf16():
+        warnings.warn(f"algo.precision=bf16 on a CPU without native bfloat16 ({cpu_model()}: "
+                      f"no AVX512-BF16 or AMX): autocast emulates it, and an update runs "
+                      f"about 1.9x slower than with algo.precision=float32", stacklevel=2)
+
+
 def _tag(method: str, budgets: list[float], heldout: int) -> str:
     tag = f"{method}@{','.join(f'{b:g}' for b in budgets)}"
     return tag if heldout == 1 else f"{tag}/h{heldout}"  # set 1's rows predate the suffix
@@ -499,6 +509,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
                       stacklevel=2)
     check_training_intents(cfg.algo)
     warn_unseen_intents(cfg, spec)
+    warn_emulated_bf16(cfg.algo.precision, cfg.device)
     # Disjoint from every protocol seed, so training never sees the leaderboard's episodes.
     protocol_seeds = {s for suite in load_protocol(1).suites.values()
                       for s in (*suite.instance_seeds, *suite.trial_seeds)}
@@ -743,8 +754,8 @@ def write_card(cfg: Any, sources: list[Path], last: Path, out: Path) -> None:
         "selected_by": f"{how}, {cfg.export_note}" if cfg.export_note else how,
         "frames": run["frames"],
         "wall_s": run["wall_s"],
-        "machine": f"{platform.machine()} {platform.processor() or ''}".strip()
-        + f", {torch.get_num_threads()} torch thread(s), device {cfg.device}"
+        "machine": f"{machine_name()}, {torch.get_num_threads()} torch thread(s), "
+                   f"device {cfg.device}"
         + (f" ({torch.cuda.get_device_name(cfg.device)})" if "cuda" in cfg.device else ""),
     }
     if snapshot:

@@ -1200,6 +1200,24 @@ def test_selecting_an_intent_trained_network_without_intents_warns():
             warn_unseen_intents(cfg, eval_spec(cfg)[0])
 
 
+def test_bf16_training_on_a_cpu_that_emulates_it_warns(monkeypatch):
+    """algo.precision=bf16 runs at about half float32's speed where bfloat16 is emulated:
+    training says so; on a CPU with native bf16, with float32, or on CUDA it stays quiet."""
+    import maipp_bench.train as train_mod
+    from maipp_bench.hardware import machine_name
+
+    monkeypatch.setattr(train_mod, "native_bf16", lambda: False)
+    with pytest.warns(UserWarning, match="without native bfloat16.*algo.precision=float32"):
+        train_mod.warn_emulated_bf16("bf16", "cpu")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        train_mod.warn_emulated_bf16("float32", "cpu")
+        train_mod.warn_emulated_bf16("bf16", "cuda")
+        monkeypatch.setattr(train_mod, "native_bf16", lambda: True)
+        train_mod.warn_emulated_bf16("bf16", "cpu")
+    assert f"{os.cpu_count()} cores, native bf16: " in machine_name()  # cards name the CPU
+
+
 def test_init_starts_from_a_networks_weights(tiny_checkpoint, tmp_path):
     from maipp_bench.train import train
 
