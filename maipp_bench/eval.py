@@ -25,6 +25,7 @@ from tqdm import tqdm
 from maipp_bench import algos
 from maipp_bench.allocator import keep_freed_memory
 from maipp_bench.envs.config import check_device
+from maipp_bench.hardware import UNRECORDED_CPU, cpu_model, same_cpu
 from maipp_bench.protocol import leaderboard
 from maipp_bench.protocol.protocol import file_sha256, load_protocol
 from maipp_bench.protocol.runner import run_chunk
@@ -281,9 +282,14 @@ def _report_reproduction(board: dict, committed: dict, path: Path) -> None:
             else "the first trial's episodes it ran")
     print(f"against {path} (as it was before this run; {what}): "
           + ", ".join(f"{n} rows {v}" for v, n in counts.items()))
+    rows = {(r["method"], r["setting"]): r for r in committed["rows"]}
     for method, setting, verdict in checks:
         if verdict == "differs":
-            print(f"  differs: {method} {setting}", file=sys.stderr)
+            recorded = leaderboard.row_machine(committed, rows[method, setting]).get("cpu_model")
+            where = ("" if same_cpu(recorded) else
+                     f" (computed on {recorded or UNRECORDED_CPU}, this is {cpu_model()}: "
+                     f"TI rows can differ across CPUs, docs/protocol.md, 'Another CPU')")
+            print(f"  differs: {method} {setting}{where}", file=sys.stderr)
 
 
 if __name__ == "__main__":

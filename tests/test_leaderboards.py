@@ -10,6 +10,8 @@ import pytest
 import torch
 
 from maipp_bench import algos
+from maipp_bench.hardware import UNRECORDED_CPU, cpu_model, same_cpu
+from maipp_bench.protocol.leaderboard import row_machine
 from maipp_bench.protocol.protocol import file_sha256, load_protocol
 from maipp_bench.protocol.runner import run_chunk
 
@@ -77,7 +79,18 @@ def test_committed_row_spot_check_recomputes(board, row):
     # Same seeds, same code: the same episodes. The tolerance only absorbs the last bits a
     # CPU with other vector units may round differently; a changed decision moves Tr(P)
     # by far more.
-    assert [r["trace"] for r in rows] == pytest.approx(spot["trace"][:n], rel=1e-9, abs=1e-9)
+    got = [r["trace"] for r in rows]
+    if got != pytest.approx(spot["trace"][:n], rel=1e-9, abs=1e-9):
+        recorded = row_machine(board, row).get("cpu_model")
+        if spec.params.get("mode") == "ti" and not same_cpu(recorded):
+            # TI scores its rollouts on float32 fantasy beliefs: another CPU's float32
+            # kernels round them differently (~1e-8 relative), which can flip a decision
+            # (2026-11-28: this agents10 ours_ti row's second episode, 15.78 on the board's
+            # AMD EPYC, 13.35 on an Intel Xeon). Such a row promises same-CPU reproduction
+            # (docs/protocol.md, "Another CPU"); the other rows reproduce on either.
+            pytest.xfail(f"{row['method']}: TI row computed on {recorded or UNRECORDED_CPU}, "
+                         f"recomputed on {cpu_model()}: {got} against {spot['trace'][:n]}")
+    assert got == pytest.approx(spot["trace"][:n], rel=1e-9, abs=1e-9)
 
 
 def test_git_commit_named_by_the_environment(monkeypatch):

@@ -177,6 +177,25 @@ def test_a_run_says_whether_it_reproduces_the_board_it_finds(smoke_board, tmp_pa
         "not comparable"}
 
 
+def test_a_differing_row_names_the_cpu_it_was_computed_on(smoke_board, capsys):
+    """TI rows can differ on another CPU (docs/protocol.md, "Another CPU"): a row that
+    differs says where it was computed when that is not this machine's CPU."""
+    from maipp_bench.eval import _report_reproduction
+    from maipp_bench.hardware import cpu_model
+
+    board, _ = smoke_board
+    changed = json.loads(json.dumps(board))
+    row = changed["rows"][0]
+    row["spot_check"]["trace"][0] += 1.0
+    for recorded, hint in ((cpu_model(), False), ("Another CPU 9000", True)):
+        changed["machine"] = {**board["machine"], "cpu_model": recorded}
+        row.pop("provenance", None)  # the board's machine is the row's
+        _report_reproduction(board, changed, Path("committed.json"))
+        err = capsys.readouterr().err
+        assert f"differs: {row['method']} {row['setting']}" in err
+        assert ("computed on Another CPU 9000, this is" in err) == hint
+
+
 def test_episode_subset_is_marked_and_kept_apart(tmp_path):
     board = _run(tmp_path, "--episodes", "2", "--methods", "random", "--budgets", "1.0")
     assert board["subset"] == {"episodes_per_setting": 2}

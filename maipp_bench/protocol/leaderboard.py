@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 import maipp_bench
+from maipp_bench.hardware import cpu_model
 from maipp_bench.protocol.protocol import Protocol, Setting, Suite, paper_results
 
 STATS = ("trace", "rmse", "evidence_inside", "evidence_outside", "evidence_total", "traps",
@@ -52,7 +53,8 @@ def machine() -> dict[str, Any]:
     import torch
 
     return {"platform": platform.platform(), "processor": platform.processor() or "unknown",
-            "cpu_count": os.cpu_count(), "python": platform.python_version(),
+            "cpu_model": cpu_model() or "unknown", "cpu_count": os.cpu_count(),
+            "python": platform.python_version(),
             "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
 
 
@@ -99,6 +101,12 @@ def row_checks(suite: Suite, eps: list[dict[str, Any]]) -> dict[str, Any]:
                        "trace": [r["trace"] for r in first]},
         "episodes_sha256": hashlib.sha256(json.dumps(listing).encode()).hexdigest(),
     }
+
+
+def row_machine(board: dict[str, Any], row: dict[str, Any]) -> dict[str, Any]:
+    """The machine a row was computed on: its own provenance's (a row kept from an earlier
+    run), else the board's."""
+    return (row.get("provenance") or board)["machine"]
 
 
 def reproduces(board: dict[str, Any], committed: dict[str, Any], rel: float = 1e-9
