@@ -306,11 +306,14 @@ def test_resume_alone_continues_the_run_as_it_was_started(tmp_path, capsys):
                           [*typed, "eval_heldout=2"]).eval_heldout == 2
 
 
-@pytest.mark.parametrize("mode", ["greedy", "ti"])
+@pytest.mark.parametrize("mode", ["greedy", "ti", "ti_float64"])
 def test_learned_policy_plays_valid_reproducible_episodes(tiny_checkpoint, mode):
     cfg = MAIPPConfig(n_agents=2, budget=1.0, n_nodes=40, k_neighbors=8)
+    params = {"mode": mode[:2] if mode.startswith("ti") else mode, "rollouts": 3, "depth": 2}
+    if mode == "ti_float64":
+        params["fantasy_dtype"] = "float64"
     spec = algos.MethodSpec(name=f"tiny_{mode}", policy="attention", models_risk=True,
-                            learned=True, params={"mode": mode, "rollouts": 3, "depth": 2})
+                            learned=True, params=params)
     rows = run_chunk(spec, cfg, [11, 12], trial_seed=5, checkpoint=str(tiny_checkpoint))
     again = run_chunk(spec, cfg, [11, 12], trial_seed=5, checkpoint=str(tiny_checkpoint))
     strip = lambda rs: [{k: v for k, v in r.items() if k != "planning_s"} for r in rs]  # noqa: E731
@@ -332,6 +335,43 @@ def test_ti_broadcasts_intents_unless_told_not_to(tiny_checkpoint, intents):
     for _ in range(6):
         td = env.step(policy(td))["next"]
     assert bool(env.episode.intent_valid.any()) == intents
+
+
+def test_ti_fantasies_in_float64_match_float32_to_its_precision(tiny_checkpoint, monkeypatch):
+    """fantasy_dtype=float64 (ours_ti_float64) runs the same rollouts as float32 with the
+    same noise: the same sampled slots, Tr(P) equal to float32's rounding; a bad dtype, or
+    one without TI, is refused."""
+    from maipp_bench.algos import learned
+    from maipp_bench.envs import MAIPPEnv
+
+    seen = {}
+    real = learned.fantasy_rollouts
+
+    def spy(*args):
+        out = real(*args)
+        seen.setdefault(args[-1], []).append(out)
+        return out
+
+    monkeypatch.setattr(learned, "fantasy_rollouts", spy)
+    cfg = MAIPPConfig(n_agents=2, budget=1.0, n_nodes=40, k_neighbors=8)
+    for dtype in ("float32", "float64"):
+        env = MAIPPEnv(cfg, batch_size=[2])
+        policy = algos.POLICIES["attention"](env, torch.tensor([3, 4]), mode="ti", rollouts=4,
+                                             depth=3, fantasy_dtype=dtype,
+                                             checkpoint=str(tiny_checkpoint))
+        td = env.reset(TensorDict(instance_seed=torch.tensor([7, 8]),
+                                  trial_seed=torch.tensor([1, 2]), batch_size=[2]))
+        policy(td)  # the first decisions, from the same state
+    (f32,), (f64,) = seen[torch.float32], seen[torch.float64]
+    assert torch.equal(f32.first, f64.first) and torch.equal(f32.nodes, f64.nodes)
+    assert f64.trace.dtype == torch.float64 and not torch.equal(f32.trace, f64.trace)
+    torch.testing.assert_close(f32.trace, f64.trace, rtol=1e-5, atol=1e-5)
+    env = MAIPPEnv(cfg, batch_size=[1])
+    for bad in ({"mode": "ti", "fantasy_dtype": "float16"},
+                {"mode": "greedy", "fantasy_dtype": "float64"}):
+        with pytest.raises(ValueError, match="fantasy_dtype"):
+            algos.POLICIES["attention"](env, torch.tensor([0]), checkpoint=str(tiny_checkpoint),
+                                        **bad)
 
 
 def test_distinct_rows_finds_one_row_per_value():

@@ -29,6 +29,7 @@ from maipp_bench.envs.maipp_env import MAIPPEnv
 from maipp_bench.envs.roadmap import laplacian_encoding
 
 MODES = ("greedy", "ti")
+FANTASY_DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
 @register_policy("attention")
@@ -49,6 +50,10 @@ class LearnedPolicy(PlannerPolicy):
             still fitted to every sampled rollout, as without the layer. A buffer below
             the mask's threshold (0.7), because true risk above the trap threshold hides
             behind beliefs below it. None: no layer; without risk it has nothing to do.
+        fantasy_dtype: ``"float32"`` (default) or ``"float64"``: the dtype of TI's fantasy
+            beliefs. float32 is faster (float64 plans 1.12-1.16x slower on one core), but
+            another CPU's float32 kernels can flip a decision where a cell sits at the
+            interest threshold (docs/protocol.md, "Another CPU").
         core: an in-memory network (periodic evaluation during training).
     """
 
@@ -59,7 +64,7 @@ class LearnedPolicy(PlannerPolicy):
     def __init__(self, env: MAIPPEnv, seeds: torch.Tensor, checkpoint: str | None = None,
                  mode: str = "greedy", rollouts: int = 8, depth: int = 5,
                  intents: bool = True, safe_risk: float | None = None, safe_beta: float = 0.0,
-                 core: AttentionCore | None = None) -> None:
+                 fantasy_dtype: str = "float32", core: AttentionCore | None = None) -> None:
         super().__init__(env, seeds)
         if mode not in MODES:
             raise ValueError(f"mode={mode!r}; valid: {list(MODES)}")
@@ -71,12 +76,16 @@ class LearnedPolicy(PlannerPolicy):
         if safe_beta < 0 or (safe_beta and safe_risk is None):
             raise ValueError(f"safe_beta={safe_beta}: must be >= 0, and is read only with "
                              f"safe_risk (got {safe_risk})")
+        if fantasy_dtype not in FANTASY_DTYPES or (fantasy_dtype != "float32" and mode != "ti"):
+            raise ValueError(f"fantasy_dtype={fantasy_dtype!r}: one of {list(FANTASY_DTYPES)}, "
+                             f"read by mode 'ti' only (got mode {mode!r})")
         if core is None:
             if checkpoint is None:
                 raise ValueError("a learned method needs a checkpoint (path or shipped name)")
             core, _ = load_core(checkpoint, env.device)
         self.core, self.mode, self.rollouts, self.depth = core, mode, rollouts, depth
         self.intents, self.safe_risk, self.safe_beta = intents, safe_risk, safe_beta
+        self.fantasy_dtype = FANTASY_DTYPES[fantasy_dtype]
         self.hidden: torch.Tensor | None = None
         self.encoding: torch.Tensor | None = None
 
@@ -133,7 +142,7 @@ class LearnedPolicy(PlannerPolicy):
         u = self.uniforms(st, (self.env.n_agents, self.rollouts, self.depth, k))[e_idx, a_idx]
         gumbel = gumbel_noise(u).reshape(-1, self.depth, k)  # row b * a + r: rollout r of b
         rollouts = fantasy_rollouts(self.core, self.env, rows, logits, hidden, e_idx, a_idx,
-                                    gumbel)
+                                    gumbel, self.fantasy_dtype)
         if self.safe_risk is not None and self.env.config.risk_enabled:
             rollouts.reject(self._unsafe(rows, e_idx, a_idx))
         return (rollouts.best_first(), *rollouts.intent(self.env.config.intent_cov_floor))

@@ -110,7 +110,8 @@ def path_merging(on: bool) -> Iterator[None]:
 
 def fantasy_rollouts(core: AttentionCore, env: MAIPPEnv, rows: TensorDictBase,
                      logits: torch.Tensor, hidden: torch.Tensor, e_idx: torch.Tensor,
-                     a_idx: torch.Tensor, gumbel: torch.Tensor) -> Rollouts:
+                     a_idx: torch.Tensor, gumbel: torch.Tensor,
+                     dtype: torch.dtype = torch.float32) -> Rollouts:
     """Rollouts of the deciding agents ``(e_idx, a_idx)`` from the env's current state.
 
     Args:
@@ -121,6 +122,9 @@ def fantasy_rollouts(core: AttentionCore, env: MAIPPEnv, rows: TensorDictBase,
             the LSTM state after it).
         gumbel: ``[B * a, j, k]`` Gumbel noise (row ``b * a + r``: rollout r of decision b);
             step s samples ``argmax(logits + gumbel[:, s])``.
+        dtype: the fantasy beliefs' dtype: float32 (every registered TI method; faster) or
+            float64, whose Tr(P) another CPU rounds alike far more often (docs/protocol.md,
+            "Another CPU").
     """
     cfg, st = env.config, env.episode
     g2 = cfg.n_grid
@@ -137,8 +141,8 @@ def fantasy_rollouts(core: AttentionCore, env: MAIPPEnv, rows: TensorDictBase,
     risk_mean = rep(st.belief.mu[e_idx, g_idx, g2:, 1])  # the real risk: mask and UCB
     per_edge = samples_per_edge(st.roadmap, cfg.sample_spacing)
     # Each agent's belief copied once (used slots only), then once per rollout.
-    belief = st.belief.gathered((e_idx, g_idx), j * per_edge, torch.float32, repeats=a)
-    query = rep(st.query[e_idx].float())
+    belief = st.belief.gathered((e_idx, g_idx), j * per_edge, dtype, repeats=a)
+    query = rep(st.query[e_idx].to(dtype))
     # Float32 inputs, as the network reads them, converted once; the roadmap, and so its
     # position embedding, is the same at every step. The risk column is still summed in
     # the env's dtype, as the env does, and rounded when written.
@@ -187,8 +191,8 @@ def fantasy_rollouts(core: AttentionCore, env: MAIPPEnv, rows: TensorDictBase,
         offsets, valid, since = sample_offsets(since, length, cfg.sample_spacing)
         src = nodes.gather(1, cur.view(-1, 1, 1).expand(-1, 1, 2)).squeeze(1)
         dst = nodes.gather(1, nxt.view(-1, 1, 1).expand(-1, 1, 2)).squeeze(1)
-        pts = edge_points(src, dst, length, offsets).float()
-        zeros = torch.zeros(*pts.shape[:-1], 2, dtype=torch.float32, device=env.device)
+        pts = edge_points(src, dst, length, offsets).to(dtype)
+        zeros = torch.zeros(*pts.shape[:-1], 2, dtype=dtype, device=env.device)
         belief.add(env.prior, query, pts, zeros, valid & alive.unsqueeze(-1))
         left = left - length
         visited.append(dst)

@@ -1,0 +1,131 @@
+"""TI's fantasy beliefs in float32 and float64 under two sets of float kernels: how often
+another CPU's rounding changes an episode, and what float64 costs (docs/protocol.md,
+"Another CPU").
+
+One machine stands in for two CPUs: MKL's default kernels (this CPU's fastest) and its
+CPU-independent ones (``MKL_CBWR=COMPATIBLE``), which round float32 and float64 products
+differently, as another CPU does. A learned TI method (``--method``, its registered
+params, with ``fantasy_dtype`` set to each of float32 and float64) plays the suite's
+first ``--episodes`` instances of its first trial at ``--budget`` four times, in child
+processes of one thread each, two at a time (the two dtypes side by side, so their
+planning seconds compare): float32 and float64 with the default kernels, then both with
+the CPU-independent ones. Reported: the episodes whose Tr(P_f) differs (beyond 1e-9
+relative) between the kernels, per dtype; between the dtypes; against the committed
+board's spot check (float32, computed on the board's CPU); and the planning seconds.
+
+Usage:
+    python benchmarks/ti_cpu_rounding.py --suite risk_aware --method ours_ti --budget 5 \\
+        --episodes 30 [--out rounding.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+KERNELS = {"default": {}, "cpu-independent": {"MKL_CBWR": "COMPATIBLE"}}
+
+
+def child(suite_name: str, method: str, budget: float, episodes: int, dtype: str) -> dict:
+    """Play the episodes in this process: traces and planning seconds."""
+    import torch
+
+    from maipp_bench import algos
+    from maipp_bench.protocol.protocol import load_protocol
+    from maipp_bench.protocol.runner import run_chunk
+
+    torch.set_num_threads(1)
+    suite = load_protocol(1).suite(suite_name)
+    setting = next(s for s in suite.settings if s.key == f"budget={budget}")
+    spec = algos.get_method(method)
+    if spec.params.get("mode") != "ti":
+        raise SystemExit(f"--method {method}: not a TI method (mode {spec.params.get('mode')!r})")
+    spec = dataclasses.replace(spec, params={**spec.params, "fantasy_dtype": dtype})
+    start = time.perf_counter()
+    with torch.inference_mode():
+        rows = run_chunk(spec, suite.env_config(setting), list(suite.instance_seeds[:episodes]),
+                         suite.trial_seeds[0], checkpoint=str(spec.checkpoint(None)))
+    return {"trace": [r["trace"] for r in rows],
+            "planning_s": sum(r["planning_s"] for r in rows),
+            "wall_s": time.perf_counter() - start}
+
+
+def run_child(args: argparse.Namespace, dtype: str, kernels: str) -> dict:
+    env = {**os.environ, **KERNELS[kernels], "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    cmd = [sys.executable, __file__, "--child", dtype, "--suite", args.suite, "--method",
+           args.method, "--budget", str(args.budget), "--episodes", str(args.episodes)]
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
+    if proc.returncode != 0:
+        raise SystemExit(f"{dtype} / {kernels} kernels failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def differing(a: list[float], b: list[float]) -> list[int]:
+    """Indices of the episodes whose Tr(P_f) differs beyond 1e-9 (relative or absolute)."""
+    return [i for i, (x, y) in enumerate(zip(a, b))
+            if not math.isclose(x, y, rel_tol=1e-9, abs_tol=1e-9)]
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--suite", default="risk_aware")
+    p.add_argument("--method", default="ours_ti")
+    p.add_argument("--budget", type=float, default=5.0)
+    p.add_argument("--episodes", type=int, default=30)
+    p.add_argument("--out", type=Path)
+    p.add_argument("--child", choices=["float32", "float64"], help=argparse.SUPPRESS)
+    args = p.parse_args()
+    if args.child:
+        print(json.dumps(child(args.suite, args.method, args.budget, args.episodes,
+                               args.child)))
+        return
+    if args.episodes < 1:
+        p.error("--episodes must be >= 1")
+    from maipp_bench.hardware import cpu_model
+
+    runs: dict[str, dict[str, dict]] = {}
+    for kernels in KERNELS:  # the two dtypes side by side, one core each
+        with ThreadPoolExecutor(2) as pool:
+            futures = {d: pool.submit(run_child, args, d, kernels)
+                       for d in ("float32", "float64")}
+            runs[kernels] = {d: f.result() for d, f in futures.items()}
+    board = json.loads((ROOT / "leaderboards" / f"{args.suite}.json").read_text())
+    row = next((r for r in board["rows"] if r["method"] == args.method
+                and r["setting"] == f"budget={args.budget}"), None)
+    committed = row["spot_check"]["trace"][:args.episodes] if row else None
+
+    d32, d64 = runs["default"]["float32"], runs["default"]["float64"]
+    c32, c64 = runs["cpu-independent"]["float32"], runs["cpu-independent"]["float64"]
+    report = {
+        "suite": args.suite, "method": args.method, "budget": args.budget,
+        "episodes": args.episodes, "cpu_model": cpu_model(),
+        "differ_between_kernels": {"float32": differing(d32["trace"], c32["trace"]),
+                                   "float64": differing(d64["trace"], c64["trace"])},
+        "differ_between_dtypes": differing(d32["trace"], d64["trace"]),
+        "float32_differs_from_board": None if committed is None
+        else differing(d32["trace"], committed),
+        "mean": {f"{d}/{k}": sum(r["trace"]) / len(r["trace"])
+                 for k, by in runs.items() for d, r in by.items()},
+        "planning_s": {f"{d}/{k}": r["planning_s"] for k, by in runs.items()
+                       for d, r in by.items()},
+        "float64_over_float32_planning": {k: by["float64"]["planning_s"]
+                                          / by["float32"]["planning_s"]
+                                          for k, by in runs.items()},
+    }
+    text = json.dumps(report, indent=1)
+    print(text)
+    if args.out:
+        args.out.write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    main()
