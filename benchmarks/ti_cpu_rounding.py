@@ -6,7 +6,7 @@ One machine stands in for two CPUs: MKL's default kernels (this CPU's fastest) a
 CPU-independent ones (``MKL_CBWR=COMPATIBLE``), which round float32 and float64 products
 differently, as another CPU does. A learned TI method (``--method``, its registered
 params, with ``fantasy_dtype`` set to each of float32 and float64) plays the suite's
-first ``--episodes`` instances of its first trial at ``--budget`` four times, in child
+first ``--episodes`` instances of its first trial in ``--setting`` four times, in child
 processes of one thread each, two at a time (the two dtypes side by side, so their
 planning seconds compare): float32 and float64 with the default kernels, then both with
 the CPU-independent ones. Reported: the episodes whose Tr(P_f) differs (beyond 1e-9
@@ -14,8 +14,8 @@ relative) between the kernels, per dtype; between the dtypes; against the commit
 board's spot check (float32, computed on the board's CPU); and the planning seconds.
 
 Usage:
-    python benchmarks/ti_cpu_rounding.py --suite risk_aware --method ours_ti --budget 5 \\
-        --episodes 30 [--out rounding.json]
+    python benchmarks/ti_cpu_rounding.py --suite risk_aware --method ours_ti \\
+        --setting budget=5.0 --episodes 30 [--out rounding.json]
 """
 
 from __future__ import annotations
@@ -32,10 +32,10 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-KERNELS = {"default": {}, "cpu-independent": {"MKL_CBWR": "COMPATIBLE"}}
+KERNELS = {"default": None, "cpu-independent": "COMPATIBLE"}  # MKL_CBWR (None: unset)
 
 
-def child(suite_name: str, method: str, budget: float, episodes: int, dtype: str) -> dict:
+def child(suite_name: str, method: str, setting_key: str, episodes: int, dtype: str) -> dict:
     """Play the episodes in this process: traces and planning seconds."""
     import torch
 
@@ -45,10 +45,8 @@ def child(suite_name: str, method: str, budget: float, episodes: int, dtype: str
 
     torch.set_num_threads(1)
     suite = load_protocol(1).suite(suite_name)
-    setting = next(s for s in suite.settings if s.key == f"budget={budget}")
+    setting = next(s for s in suite.settings if s.key == setting_key)
     spec = algos.get_method(method)
-    if spec.params.get("mode") != "ti":
-        raise SystemExit(f"--method {method}: not a TI method (mode {spec.params.get('mode')!r})")
     spec = dataclasses.replace(spec, params={**spec.params, "fantasy_dtype": dtype})
     start = time.perf_counter()
     with torch.inference_mode():
@@ -60,9 +58,12 @@ def child(suite_name: str, method: str, budget: float, episodes: int, dtype: str
 
 
 def run_child(args: argparse.Namespace, dtype: str, kernels: str) -> dict:
-    env = {**os.environ, **KERNELS[kernels], "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    env = {k: v for k, v in os.environ.items() if k != "MKL_CBWR"}
+    env |= {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    if KERNELS[kernels] is not None:
+        env["MKL_CBWR"] = KERNELS[kernels]
     cmd = [sys.executable, __file__, "--child", dtype, "--suite", args.suite, "--method",
-           args.method, "--budget", str(args.budget), "--episodes", str(args.episodes)]
+           args.method, "--setting", args.setting, "--episodes", str(args.episodes)]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         raise SystemExit(f"{dtype} / {kernels} kernels failed:\n{proc.stderr[-3000:]}")
@@ -79,18 +80,29 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--suite", default="risk_aware")
     p.add_argument("--method", default="ours_ti")
-    p.add_argument("--budget", type=float, default=5.0)
+    p.add_argument("--setting", default="budget=5.0", help="a setting key of the suite")
     p.add_argument("--episodes", type=int, default=30)
     p.add_argument("--out", type=Path)
     p.add_argument("--child", choices=["float32", "float64"], help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.child:
-        print(json.dumps(child(args.suite, args.method, args.budget, args.episodes,
+        print(json.dumps(child(args.suite, args.method, args.setting, args.episodes,
                                args.child)))
         return
-    if args.episodes < 1:
-        p.error("--episodes must be >= 1")
+    from maipp_bench import algos
     from maipp_bench.hardware import cpu_model
+    from maipp_bench.protocol.protocol import load_protocol
+
+    suite = load_protocol(1).suite(args.suite)  # bad names fail here, before any child
+    keys = [s.key for s in suite.settings]
+    if args.setting not in keys:
+        p.error(f"--setting {args.setting!r} is not a setting of {args.suite}: {keys}")
+    if algos.get_method(args.method).params.get("mode") != "ti":
+        p.error(f"--method {args.method}: not a TI method")
+    if not 1 <= args.episodes <= len(suite.instance_seeds):
+        p.error(f"--episodes must be 1-{len(suite.instance_seeds)}")
+    path = ROOT / "leaderboards" / f"{args.suite}.json"
+    board = json.loads(path.read_text()) if path.exists() else {"rows": []}
 
     runs: dict[str, dict[str, dict]] = {}
     for kernels in KERNELS:  # the two dtypes side by side, one core each
@@ -98,15 +110,14 @@ def main() -> None:
             futures = {d: pool.submit(run_child, args, d, kernels)
                        for d in ("float32", "float64")}
             runs[kernels] = {d: f.result() for d, f in futures.items()}
-    board = json.loads((ROOT / "leaderboards" / f"{args.suite}.json").read_text())
     row = next((r for r in board["rows"] if r["method"] == args.method
-                and r["setting"] == f"budget={args.budget}"), None)
+                and r["setting"] == args.setting), None)
     committed = row["spot_check"]["trace"][:args.episodes] if row else None
 
     d32, d64 = runs["default"]["float32"], runs["default"]["float64"]
     c32, c64 = runs["cpu-independent"]["float32"], runs["cpu-independent"]["float64"]
     report = {
-        "suite": args.suite, "method": args.method, "budget": args.budget,
+        "suite": args.suite, "method": args.method, "setting": args.setting,
         "episodes": args.episodes, "cpu_model": cpu_model(),
         "differ_between_kernels": {"float32": differing(d32["trace"], c32["trace"]),
                                    "float64": differing(d64["trace"], c64["trace"])},

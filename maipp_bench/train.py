@@ -315,7 +315,7 @@ def warn_emulated_bf16(precision: str, device: str) -> None:
     if precision == "bf16" and torch.device(device).type == "cpu" and not native_bf16():
         warnings.warn(f"algo.precision=bf16 on a CPU without native bfloat16 ({cpu_model()}: "
                       f"no AVX512-BF16 or AMX): autocast emulates it, and an update runs "
-                      f"about 1.9x slower than with algo.precision=float32", stacklevel=2)
+                      f"about 1.7-1.9x slower than with algo.precision=float32", stacklevel=2)
 
 
 def _tag(method: str, budgets: list[float], heldout: int) -> str:

@@ -4,6 +4,7 @@ same shipped checkpoints, and their cheap rows recompute to the numbers they sho
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -82,12 +83,15 @@ def test_committed_row_spot_check_recomputes(board, row):
     got = [r["trace"] for r in rows]
     if got != pytest.approx(spot["trace"][:n], rel=1e-9, abs=1e-9):
         recorded = row_machine(board, row).get("cpu_model")
-        if spec.params.get("mode") == "ti" and not same_cpu(recorded):
+        matched = sum(math.isclose(g, t, rel_tol=1e-9, abs_tol=1e-9)
+                      for g, t in zip(got, spot["trace"]))
+        if spec.params.get("mode") == "ti" and not same_cpu(recorded) and 2 * matched >= n:
             # TI scores its rollouts on float32 fantasy beliefs: another CPU's float32
             # kernels round them differently (~1e-8 relative), which can flip a decision
-            # (2026-11-28: this agents10 ours_ti row's second episode, 15.78 on the board's
-            # AMD EPYC, 13.35 on an Intel Xeon). Such a row promises same-CPU reproduction
-            # (docs/protocol.md, "Another CPU"); the other rows reproduce on either.
+            # in an episode (2026-11-28: this agents10 ours_ti row's second episode, 15.78
+            # on the board's AMD EPYC, 13.35 on an Intel Xeon; 2 of 70 episodes measured).
+            # Such a row promises same-CPU reproduction (docs/protocol.md, "Another CPU");
+            # a changed algorithm would change most of its episodes, not one in a few.
             pytest.xfail(f"{row['method']}: TI row computed on {recorded or UNRECORDED_CPU}, "
                          f"recomputed on {cpu_model()}: {got} against {spot['trace'][:n]}")
     assert got == pytest.approx(spot["trace"][:n], rel=1e-9, abs=1e-9)

@@ -374,6 +374,25 @@ def test_ti_fantasies_in_float64_match_float32_to_its_precision(tiny_checkpoint,
                                         **bad)
 
 
+def test_ti_cpu_rounding_plays_both_dtypes_under_both_kernel_sets(tmp_path):
+    """benchmarks/ti_cpu_rounding.py (docs/protocol.md, "Another CPU"): four children, the
+    report's comparisons; a setting the suite does not have fails before any child."""
+    script = Path(__file__).parents[1] / "benchmarks" / "ti_cpu_rounding.py"
+    out = tmp_path / "r.json"
+    proc = subprocess.run([sys.executable, str(script), "--suite", "smoke", "--method",
+                           "ours_ti", "--setting", "budget=1.0", "--episodes", "1", "--out",
+                           str(out)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    report = json.loads(out.read_text())
+    assert set(report["planning_s"]) == {f"{d}/{k}" for d in ("float32", "float64")
+                                         for k in ("default", "cpu-independent")}
+    assert report["float32_differs_from_board"] is None  # smoke has no committed board
+    assert all(isinstance(v, list) for v in report["differ_between_kernels"].values())
+    bad = subprocess.run([sys.executable, str(script), "--suite", "comm", "--setting",
+                          "budget=5.0"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "is not a setting of comm" in bad.stderr
+
+
 def test_distinct_rows_finds_one_row_per_value():
     from maipp_bench.algos.rollouts import distinct_rows
 

@@ -177,9 +177,13 @@ def test_a_run_says_whether_it_reproduces_the_board_it_finds(smoke_board, tmp_pa
         "not comparable"}
 
 
-def test_a_differing_row_names_the_cpu_it_was_computed_on(smoke_board, capsys):
-    """TI rows can differ on another CPU (docs/protocol.md, "Another CPU"): a row that
-    differs says where it was computed when that is not this machine's CPU."""
+def test_a_differing_ti_row_names_the_cpu_it_was_computed_on(smoke_board, capsys,
+                                                            monkeypatch):
+    """TI rows can differ on another CPU (docs/protocol.md, "Another CPU"): a TI row that
+    differs says where it was computed when that is not this machine's CPU; other rows,
+    which reproduce on any CPU, do not get that excuse."""
+    import dataclasses
+
     from maipp_bench.eval import _report_reproduction
     from maipp_bench.hardware import cpu_model
 
@@ -187,7 +191,11 @@ def test_a_differing_row_names_the_cpu_it_was_computed_on(smoke_board, capsys):
     changed = json.loads(json.dumps(board))
     row = changed["rows"][0]
     row["spot_check"]["trace"][0] += 1.0
-    for recorded, hint in ((cpu_model(), False), ("Another CPU 9000", True)):
+    real = algos.get_method(row["method"])
+    for recorded, mode, hint in ((cpu_model(), "ti", False), ("Another CPU 9000", "ti", True),
+                                 ("Another CPU 9000", None, False)):
+        spec = dataclasses.replace(real, params={**real.params, "mode": mode})
+        monkeypatch.setattr(algos, "get_method", lambda name, spec=spec: spec)
         changed["machine"] = {**board["machine"], "cpu_model": recorded}
         row.pop("provenance", None)  # the board's machine is the row's
         _report_reproduction(board, changed, Path("committed.json"))
