@@ -679,7 +679,8 @@ def test_final_choice_exports_a_stage2_snapshot_start(tmp_path):
     assert (run / "final.json").read_text() == chosen.with_suffix(".json").read_text()
 
 
-def test_select_snapshot_scores_the_window_and_picks_the_lowest(tiny_checkpoint, tmp_path):
+def test_select_snapshot_scores_the_window_and_picks_the_lowest(tiny_checkpoint, tmp_path,
+                                                                monkeypatch, capsys):
     """benchmarks/select_snapshot.py (train_2h.sh's SELECT=1): the candidates are the run's
     end and its snapshots inside the window; the choice is the lowest mean Tr(P_f)."""
     script = Path(__file__).parents[1] / "benchmarks" / "select_snapshot.py"
@@ -707,18 +708,31 @@ def test_select_snapshot_scores_the_window_and_picks_the_lowest(tiny_checkpoint,
     assert result["chosen"] == min(first, end, key=lambda c: c["mean"])
     assert proc.stdout.strip() == result["chosen"]["path"]  # stdout is the path alone
     assert result["candidates"][-1]["minus_end"] == 0.0
-    missing = subprocess.run([sys.executable, str(script), "--run", str(tmp_path / "none")],
-                             capture_output=True, text=True, timeout=120)
-    assert missing.returncode != 0 and "no training checkpoint" in missing.stderr
-    absent = subprocess.run([sys.executable, str(script), "--candidates",
-                             str(run / "checkpoint.pt"), str(tmp_path / "none.pt")],
-                            capture_output=True, text=True, timeout=120)
-    assert absent.returncode != 0 and "no such file" in absent.stderr
-    assert str(tmp_path / "none.pt") in absent.stderr
-    both = subprocess.run([sys.executable, str(script), "--run", str(run), "--candidates",
-                           str(run / "checkpoint.pt")], capture_output=True, text=True,
-                          timeout=120)
-    assert both.returncode == 2 and "not allowed with argument" in both.stderr
+    # bad arguments fail before any worker starts: checked in this process (a Python
+    # start per case cost ~5 s each)
+    monkeypatch.syspath_prepend(str(script.parent))
+    from select_snapshot import main as select_main
+
+    def refused(*argv: str) -> str:
+        monkeypatch.setattr(sys, "argv", ["select_snapshot.py", *argv])
+        with pytest.raises(SystemExit) as exit_:
+            select_main()
+        assert exit_.value.code == 2
+        return capsys.readouterr().err
+
+    monkeypatch.setattr(sys, "argv", ["select_snapshot.py", "--run", str(tmp_path / "none")])
+    with pytest.raises(FileNotFoundError, match="no training checkpoint"):
+        select_main()
+    monkeypatch.setattr(sys, "argv", ["select_snapshot.py", "--candidates",
+                                      str(run / "checkpoint.pt"), str(tmp_path / "none.pt")])
+    with pytest.raises(FileNotFoundError, match=f"no such file: {tmp_path / 'none.pt'}"):
+        select_main()
+    assert "not allowed with argument" in refused("--run", str(run), "--candidates",
+                                                  str(run / "checkpoint.pt"))
+    assert "one count or one per budget" in refused("--run", str(run), "--budget", "2", "5",
+                                                    "--episodes", "2", "3", "4")
+    assert "--budget takes each budget once, got 2 2" in refused("--run", str(run), "--budget",
+                                                                "2", "2.0")
     # --candidates at two budgets, episodes per budget in --budget's order: equal scores
     # go to the later file
     shutil.copy(run / "checkpoint.pt", tmp_path / "copy.pt")
@@ -739,13 +753,6 @@ def test_select_snapshot_scores_the_window_and_picks_the_lowest(tiny_checkpoint,
                            capture_output=True, text=True, timeout=300)
     assert alone.returncode == 0, alone.stderr  # B = 5 played its own 3 episodes above
     assert json.loads(out.read_text())["chosen"]["mean"] == copy_["mean_B5"]
-    counts = subprocess.run([sys.executable, str(script), "--run", str(run), "--budget", "2",
-                             "5", "--episodes", "2", "3", "4"], capture_output=True, text=True,
-                            timeout=120)
-    assert counts.returncode == 2 and "one count or one per budget" in counts.stderr
-    twice = subprocess.run([sys.executable, str(script), "--run", str(run), "--budget", "2",
-                            "2.0"], capture_output=True, text=True, timeout=120)
-    assert twice.returncode == 2 and "--budget takes each budget once, got 2 2" in twice.stderr
 
 
 def test_paired_subset_leaves_out_excluded_episodes_and_names_the_worst(tmp_path):
