@@ -13,9 +13,16 @@ the CPU-independent ones. Reported: the episodes whose Tr(P_f) differs (beyond 1
 relative) between the kernels, per dtype; between the dtypes; against the committed
 board's spot check (float32, computed on the board's CPU); and the planning seconds.
 
+``--trace-instance I`` then replays the I-th of those episodes in float32 under both
+kernel sets, recording every TI decision's rollouts (first slots, Tr(P)), and reports the
+first decision whose chosen slot differs: its rollouts under each, and how far the
+rollouts' Tr(P) had drifted apart before it.
+
 Usage:
     python benchmarks/ti_cpu_rounding.py --suite risk_aware --method ours_ti \\
         --setting budget=5.0 --episodes 30 [--out rounding.json]
+    python benchmarks/ti_cpu_rounding.py --suite agents10 --method ours_ti \\
+        --setting budget=2.0 --episodes 10 --trace-instance 1
 """
 
 from __future__ import annotations
@@ -35,11 +42,14 @@ ROOT = Path(__file__).resolve().parent.parent
 KERNELS = {"default": None, "cpu-independent": "COMPATIBLE"}  # MKL_CBWR (None: unset)
 
 
-def child(suite_name: str, method: str, setting_key: str, episodes: int, dtype: str) -> dict:
-    """Play the episodes in this process: traces and planning seconds."""
+def child(suite_name: str, method: str, setting_key: str, episodes: int, dtype: str,
+          trace: int | None = None) -> dict:
+    """Play the episodes in this process: traces and planning seconds; with ``trace``, that
+    one episode alone, with every TI decision's rollouts."""
     import torch
 
     from maipp_bench import algos
+    from maipp_bench.algos.rollouts import Rollouts
     from maipp_bench.protocol.protocol import load_protocol
     from maipp_bench.protocol.runner import run_chunk
 
@@ -48,22 +58,52 @@ def child(suite_name: str, method: str, setting_key: str, episodes: int, dtype: 
     setting = next(s for s in suite.settings if s.key == setting_key)
     spec = algos.get_method(method)
     spec = dataclasses.replace(spec, params={**spec.params, "fantasy_dtype": dtype})
+    instances = list(suite.instance_seeds[:episodes] if trace is None
+                     else suite.instance_seeds[trace:trace + 1])
+    decisions = []
+    best_first = Rollouts.best_first
+
+    def recorded(self: Rollouts) -> torch.Tensor:
+        decisions.append({"first": self.first.tolist(), "trace": self.trace.tolist()})
+        return best_first(self)
+
+    Rollouts.best_first = recorded
     start = time.perf_counter()
     with torch.inference_mode():
-        rows = run_chunk(spec, suite.env_config(setting), list(suite.instance_seeds[:episodes]),
-                         suite.trial_seeds[0], checkpoint=str(spec.checkpoint(None)))
+        rows = run_chunk(spec, suite.env_config(setting), instances, suite.trial_seeds[0],
+                         checkpoint=str(spec.checkpoint(None)))
     return {"trace": [r["trace"] for r in rows],
             "planning_s": sum(r["planning_s"] for r in rows),
-            "wall_s": time.perf_counter() - start}
+            "wall_s": time.perf_counter() - start,
+            "decisions": decisions if trace is not None else None}
 
 
-def run_child(args: argparse.Namespace, dtype: str, kernels: str) -> dict:
+def first_split(a: list[dict], b: list[dict]) -> dict | None:
+    """The first TI decision whose chosen slots differ between two replays of an episode:
+    its index, each replay's rollouts of the deciding agent whose slot differs, and the
+    largest relative difference of the rollouts' Tr(P) at the decisions before it."""
+    drift = 0.0
+    for i, (x, y) in enumerate(zip(a, b)):
+        chosen = [[f[t.index(min(t))] for f, t in zip(d["first"], d["trace"])] for d in (x, y)]
+        if chosen[0] != chosen[1]:
+            row = next(r for r, (p, q) in enumerate(zip(*chosen)) if p != q)
+            return {"decision": i, "agent_row": row, "drift_before": drift,
+                    "first": x["first"][row], "trace": [x["trace"][row], y["trace"][row]]}
+        drift = max([drift, *(abs(p - q) / abs(q) for tx, ty in zip(x["trace"], y["trace"])
+                              for p, q in zip(tx, ty))])
+    return None
+
+
+def run_child(args: argparse.Namespace, dtype: str, kernels: str,
+              trace: int | None = None) -> dict:
     env = {k: v for k, v in os.environ.items() if k != "MKL_CBWR"}
     env |= {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     if KERNELS[kernels] is not None:
         env["MKL_CBWR"] = KERNELS[kernels]
     cmd = [sys.executable, __file__, "--child", dtype, "--suite", args.suite, "--method",
            args.method, "--setting", args.setting, "--episodes", str(args.episodes)]
+    if trace is not None:
+        cmd += ["--trace-instance", str(trace)]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         raise SystemExit(f"{dtype} / {kernels} kernels failed:\n{proc.stderr[-3000:]}")
@@ -82,12 +122,15 @@ def main() -> None:
     p.add_argument("--method", default="ours_ti")
     p.add_argument("--setting", default="budget=5.0", help="a setting key of the suite")
     p.add_argument("--episodes", type=int, default=30)
+    p.add_argument("--trace-instance", type=int, metavar="I",
+                   help="also replay the I-th episode (0-based) in float32 under both kernel "
+                        "sets and report the first decision that differs")
     p.add_argument("--out", type=Path)
     p.add_argument("--child", choices=["float32", "float64"], help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.child:
         print(json.dumps(child(args.suite, args.method, args.setting, args.episodes,
-                               args.child)))
+                               args.child, args.trace_instance)))
         return
     from maipp_bench import algos
     from maipp_bench.hardware import cpu_model
@@ -101,6 +144,8 @@ def main() -> None:
         p.error(f"--method {args.method}: not a TI method")
     if not 1 <= args.episodes <= len(suite.instance_seeds):
         p.error(f"--episodes must be 1-{len(suite.instance_seeds)}")
+    if args.trace_instance is not None and not 0 <= args.trace_instance < args.episodes:
+        p.error(f"--trace-instance must be 0-{args.episodes - 1}")
     path = ROOT / "leaderboards" / f"{args.suite}.json"
     board = json.loads(path.read_text()) if path.exists() else {"rows": []}
 
@@ -132,6 +177,13 @@ def main() -> None:
                                           / by["float32"]["planning_s"]
                                           for k, by in runs.items()},
     }
+    if args.trace_instance is not None:
+        with ThreadPoolExecutor(2) as pool:
+            replays = [pool.submit(run_child, args, "float32", k, args.trace_instance)
+                       for k in KERNELS]
+            default, independent = (f.result()["decisions"] for f in replays)
+        report["trace_instance"] = {"instance": args.trace_instance,
+                                    "first_split": first_split(default, independent)}
     text = json.dumps(report, indent=1)
     print(text)
     if args.out:

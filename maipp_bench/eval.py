@@ -25,7 +25,7 @@ from tqdm import tqdm
 from maipp_bench import algos
 from maipp_bench.allocator import keep_freed_memory
 from maipp_bench.envs.config import check_device
-from maipp_bench.hardware import UNRECORDED_CPU, cpu_model, same_cpu
+from maipp_bench.hardware import cpu_model
 from maipp_bench.protocol import leaderboard
 from maipp_bench.protocol.protocol import file_sha256, load_protocol
 from maipp_bench.protocol.runner import run_chunk
@@ -285,11 +285,10 @@ def _report_reproduction(board: dict, committed: dict, path: Path) -> None:
     rows = {(r["method"], r["setting"]): r for r in committed["rows"]}
     for method, setting, verdict in checks:
         if verdict == "differs":
-            recorded = leaderboard.row_machine(committed, rows[method, setting]).get("cpu_model")
-            ti = algos.get_method(method).params.get("mode") == "ti"
-            where = ("" if same_cpu(recorded) or not ti else
-                     f" (computed on {recorded or UNRECORDED_CPU}, this is {cpu_model()}: "
-                     f"TI rows can differ across CPUs, docs/protocol.md, 'Another CPU')")
+            other = leaderboard.ti_row_of_another_cpu(committed, rows[method, setting])
+            where = ("" if other is None else
+                     f" (computed on {other}, this is {cpu_model()}: TI rows can differ "
+                     f"across CPUs, docs/protocol.md, 'Another CPU')")
             print(f"  differs: {method} {setting}{where}", file=sys.stderr)
 
 

@@ -393,6 +393,24 @@ def test_ti_cpu_rounding_plays_both_dtypes_under_both_kernel_sets(tmp_path):
     assert bad.returncode == 2 and "is not a setting of comm" in bad.stderr
 
 
+
+def test_ti_cpu_rounding_finds_the_first_decision_that_splits(monkeypatch):
+    """--trace-instance's comparison: the first TI decision whose chosen slot differs
+    (the rollout with the least Tr(P) of each agent row), with the drift before it."""
+    monkeypatch.syspath_prepend(str(Path(__file__).parents[1] / "benchmarks"))
+    from ti_cpu_rounding import first_split
+
+    same = {"first": [[3, 4], [1, 2]], "trace": [[5.0, 6.0], [7.0, 8.0]]}
+    drifted = {"first": [[3, 4], [1, 2]], "trace": [[5.0, 6.0], [7.0, 8.000008]]}
+    flipped = {"first": [[3, 4], [1, 2]], "trace": [[5.0, 6.0], [7.2, 7.1]]}
+    assert first_split([same, same], [same, drifted]) is None
+    split = first_split([same, drifted, same], [same, drifted, flipped])
+    assert split == {"decision": 2, "agent_row": 1, "drift_before": 0.0,
+                     "first": [1, 2], "trace": [[7.0, 8.0], [7.2, 7.1]]}
+    split = first_split([drifted, same], [same, flipped])
+    assert split["decision"] == 1 and split["drift_before"] == pytest.approx(1e-6)
+
+
 def test_distinct_rows_finds_one_row_per_value():
     from maipp_bench.algos.rollouts import distinct_rows
 

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 import maipp_bench
-from maipp_bench.hardware import cpu_model
+from maipp_bench.hardware import UNRECORDED_CPU, cpu_model, same_cpu
 from maipp_bench.protocol.protocol import Protocol, Setting, Suite, paper_results
 
 STATS = ("trace", "rmse", "evidence_inside", "evidence_outside", "evidence_total", "traps",
@@ -103,10 +103,17 @@ def row_checks(suite: Suite, eps: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-def row_machine(board: dict[str, Any], row: dict[str, Any]) -> dict[str, Any]:
-    """The machine a row was computed on: its own provenance's (a row kept from an earlier
-    run), else the board's."""
-    return (row.get("provenance") or board)["machine"]
+def ti_row_of_another_cpu(board: dict[str, Any], row: dict[str, Any]) -> str | None:
+    """The CPU a committed TI row was computed on, when it is not this machine's (then its
+    episodes may differ here: float32 fantasy beliefs, docs/protocol.md "Another CPU");
+    None for a row of this CPU or of a method without TI. The machine is the row's own
+    provenance's (a row kept from an earlier run), else the board's."""
+    from maipp_bench import algos  # here: the registry loads every policy
+
+    recorded = (row.get("provenance") or board)["machine"].get("cpu_model")
+    if algos.get_method(row["method"]).params.get("mode") != "ti" or same_cpu(recorded):
+        return None
+    return recorded or UNRECORDED_CPU
 
 
 def reproduces(board: dict[str, Any], committed: dict[str, Any], rel: float = 1e-9
