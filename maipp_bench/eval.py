@@ -22,14 +22,20 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from maipp_bench import algos
-from maipp_bench.allocator import keep_freed_memory
-from maipp_bench.envs.config import check_device
 from maipp_bench.hardware import cpu_model
-from maipp_bench.protocol import leaderboard
-from maipp_bench.protocol.protocol import file_sha256, load_protocol
-from maipp_bench.protocol.runner import run_chunk
-from maipp_bench.protocol.store import ResultStore
+from maipp_bench.kernels import kernel_mode, pin_cpu_kernels, require_pinned_kernels
+
+# MKL's CPU-independent kernels, asked for before tensordict's import (below) makes MKL's
+# first call and so fixes its code path: rows then reproduce on other CPUs.
+pin_cpu_kernels()
+
+from maipp_bench import algos  # noqa: E402
+from maipp_bench.allocator import keep_freed_memory  # noqa: E402
+from maipp_bench.envs.config import check_device  # noqa: E402
+from maipp_bench.protocol import leaderboard  # noqa: E402
+from maipp_bench.protocol.protocol import file_sha256, load_protocol  # noqa: E402
+from maipp_bench.protocol.runner import run_chunk  # noqa: E402
+from maipp_bench.protocol.store import ResultStore  # noqa: E402
 
 # Test hook: exit hard (as if killed) after this many stored chunks.
 _STOP_AFTER_ENV = "MAIPP_EVAL_STOP_AFTER_CHUNKS"
@@ -97,6 +103,10 @@ def _checkpoints(pairs: list[str], methods: list[str]) -> dict[str, dict]:
 
 def main(argv: list[str] | None = None) -> dict:
     args = parse_args(argv)
+    try:
+        require_pinned_kernels()
+    except RuntimeError as err:
+        raise SystemExit(f"error: {err}") from None
     keep_freed_memory()
     commit = leaderboard.git_commit()  # the code that computes this run's rows
     protocol = load_protocol(args.protocol_version)
@@ -285,10 +295,10 @@ def _report_reproduction(board: dict, committed: dict, path: Path) -> None:
     rows = {(r["method"], r["setting"]): r for r in committed["rows"]}
     for method, setting, verdict in checks:
         if verdict == "differs":
-            other = leaderboard.ti_row_of_another_cpu(committed, rows[method, setting])
+            other = leaderboard.machine_apart(committed, rows[method, setting])
             where = ("" if other is None else
-                     f" (computed on {other}, this is {cpu_model()}: TI rows can differ "
-                     f"across CPUs, docs/protocol.md, 'Another CPU')")
+                     f" (computed on {other}; this run: {cpu_model()} with MKL's "
+                     f"{kernel_mode()} kernels; docs/protocol.md, 'Another CPU')")
             print(f"  differs: {method} {setting}{where}", file=sys.stderr)
 
 

@@ -3,8 +3,8 @@
 Training cards, leaderboards and benchmark figures name the CPU model: the development
 boxes changed between AMD EPYC (with ``avx512_bf16``) and Intel Xeon (without it); ``bf16``
 training runs at about half float32's speed where bfloat16 is emulated
-(docs/performance.md), and TI's float32 rollouts can round differently on another CPU
-(docs/protocol.md, "Another CPU").
+(docs/performance.md), and MKL's default kernels round differently on another CPU (eval
+pins its CPU-independent ones: maipp_bench/kernels.py; docs/protocol.md, "Another CPU").
 
 Boards written before the CPU model was recorded (2026-11-28) were all computed on 2-core
 AMD EPYC boxes: :data:`UNRECORDED_CPU`.

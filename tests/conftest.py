@@ -2,8 +2,15 @@
 
 from __future__ import annotations
 
-import pytest
-import torch
+from maipp_bench.kernels import pin_cpu_kernels
+
+# The kernels of protocol runs (python -m maipp_bench.eval pins them the same way), asked
+# for before any import makes MKL's first call: the committed boards' spot checks and the
+# in-process evaluations compute rows as a protocol run does.
+pin_cpu_kernels()
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
 
 
 @pytest.fixture(autouse=True, scope="session")

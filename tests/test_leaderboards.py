@@ -4,15 +4,12 @@ same shipped checkpoints, and their cheap rows recompute to the numbers they sho
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import pytest
 import torch
 
 from maipp_bench import algos
-from maipp_bench.hardware import cpu_model
-from maipp_bench.protocol.leaderboard import ti_row_of_another_cpu
 from maipp_bench.protocol.protocol import file_sha256, load_protocol
 from maipp_bench.protocol.runner import run_chunk
 
@@ -77,24 +74,10 @@ def test_committed_row_spot_check_recomputes(board, row):
     with torch.inference_mode():
         rows = run_chunk(spec, suite.env_config(setting), spot["instances"][:n],
                          spot["trial"], **kwargs)
-    # Same seeds, same code: the same episodes. The tolerance only absorbs the last bits a
-    # CPU with other vector units may round differently; a changed decision moves Tr(P)
-    # by far more.
-    got = [r["trace"] for r in rows]
-    if got != pytest.approx(spot["trace"][:n], rel=1e-9, abs=1e-9):
-        other = ti_row_of_another_cpu(board, row)
-        matched = sum(math.isclose(g, t, rel_tol=1e-9, abs_tol=1e-9)
-                      for g, t in zip(got, spot["trace"]))
-        if other is not None and 2 * matched >= n:
-            # TI scores its rollouts on float32 fantasy beliefs: another CPU's float32
-            # kernels round them differently (up to ~1e-7 relative), which can flip a decision
-            # in an episode (2026-11-28: this agents10 ours_ti row's second episode, 15.78
-            # on the board's AMD EPYC, 13.35 on an Intel Xeon; 2 of 70 episodes measured).
-            # Such a row promises same-CPU reproduction (docs/protocol.md, "Another CPU");
-            # a changed algorithm would change most of its episodes, not one in a few.
-            pytest.xfail(f"{row['method']}: TI row computed on {other}, "
-                         f"recomputed on {cpu_model()}: {got} against {spot['trace'][:n]}")
-    assert got == pytest.approx(spot["trace"][:n], rel=1e-9, abs=1e-9)
+    # Same seeds, same code, MKL's CPU-independent kernels (tests/conftest.py, as eval
+    # pins them): the same episodes on any x86 CPU. The tolerance only absorbs the last bits
+    # other vector units may round differently; a changed decision moves Tr(P) by far more.
+    assert [r["trace"] for r in rows] == pytest.approx(spot["trace"][:n], rel=1e-9, abs=1e-9)
 
 
 def test_git_commit_named_by_the_environment(monkeypatch):

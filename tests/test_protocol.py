@@ -177,31 +177,32 @@ def test_a_run_says_whether_it_reproduces_the_board_it_finds(smoke_board, tmp_pa
         "not comparable"}
 
 
-def test_a_differing_ti_row_names_the_cpu_it_was_computed_on(smoke_board, capsys,
-                                                            monkeypatch):
-    """TI rows can differ on another CPU (docs/protocol.md, "Another CPU"): a TI row that
-    differs says where it was computed when that is not this machine's CPU; other rows,
-    which reproduce on any CPU, do not get that excuse."""
-    import dataclasses
-
+def test_a_differing_row_names_the_machine_it_was_computed_on(smoke_board, capsys):
+    """A row that differs says which CPU and MKL kernels computed it when they are not this
+    run's (docs/protocol.md, "Another CPU"), and nothing more when they are."""
     from maipp_bench.eval import _report_reproduction
     from maipp_bench.hardware import cpu_model
+    from maipp_bench.kernels import kernel_mode
 
     board, _ = smoke_board
+    assert board["machine"]["mkl_kernels"] == kernel_mode()
     changed = json.loads(json.dumps(board))
     row = changed["rows"][0]
     row["spot_check"]["trace"][0] += 1.0
-    real = algos.get_method(row["method"])
-    for recorded, mode, hint in ((cpu_model(), "ti", False), ("Another CPU 9000", "ti", True),
-                                 ("Another CPU 9000", None, False)):
-        spec = dataclasses.replace(real, params={**real.params, "mode": mode})
-        monkeypatch.setattr(algos, "get_method", lambda name, spec=spec: spec)
-        changed["machine"] = {**board["machine"], "cpu_model": recorded}
-        row.pop("provenance", None)  # the board's machine is the row's
+    row.pop("provenance", None)  # the board's machine is the row's
+    for recorded, kernels, hint in ((cpu_model(), kernel_mode(), None),
+                                    ("Another CPU 9000", kernel_mode(),
+                                     f"Another CPU 9000 with MKL's {kernel_mode()} kernels"),
+                                    (cpu_model(), "branch 10",
+                                     f"{cpu_model()} with MKL's branch 10 kernels")):
+        changed["machine"] = {**board["machine"], "cpu_model": recorded,
+                              "mkl_kernels": kernels}
         _report_reproduction(board, changed, Path("committed.json"))
         err = capsys.readouterr().err
         assert f"differs: {row['method']} {row['setting']}" in err
-        assert ("computed on Another CPU 9000, this is" in err) == hint
+        assert ("computed on" in err) == (hint is not None)
+        if hint:
+            assert f"computed on {hint}; this run: {cpu_model()} with MKL's {kernel_mode()}" in err
 
 
 def test_episode_subset_is_marked_and_kept_apart(tmp_path):

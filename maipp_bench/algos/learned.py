@@ -52,8 +52,9 @@ class LearnedPolicy(PlannerPolicy):
             behind beliefs below it. None: no layer; without risk it has nothing to do.
         fantasy_dtype: ``"float32"`` (default) or ``"float64"``: the dtype of TI's fantasy
             beliefs. float32 is faster (float64 plans 1.12-1.14x slower on one core), but
-            another CPU's float32 kernels can flip a decision where a cell sits at the
-            interest threshold (docs/protocol.md, "Another CPU").
+            under MKL's default kernels another CPU's float32 rounding can flip a decision
+            where a cell sits at the interest threshold; eval pins MKL's CPU-independent
+            kernels (maipp_bench/kernels.py; docs/protocol.md, "Another CPU").
         core: an in-memory network (periodic evaluation during training).
     """
 

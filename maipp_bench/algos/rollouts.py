@@ -123,8 +123,8 @@ def fantasy_rollouts(core: AttentionCore, env: MAIPPEnv, rows: TensorDictBase,
         gumbel: ``[B * a, j, k]`` Gumbel noise (row ``b * a + r``: rollout r of decision b);
             step s samples ``argmax(logits + gumbel[:, s])``.
         dtype: the fantasy beliefs' dtype: float32 (every registered TI method; faster) or
-            float64, whose Tr(P) another CPU rounds alike far more often (docs/protocol.md,
-            "Another CPU").
+            float64, whose Tr(P) other float kernels round alike far more often
+            (docs/protocol.md, "Another CPU").
     """
     cfg, st = env.config, env.episode
     g2 = cfg.n_grid

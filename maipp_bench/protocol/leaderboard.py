@@ -23,6 +23,7 @@ import numpy as np
 
 import maipp_bench
 from maipp_bench.hardware import UNRECORDED_CPU, cpu_model, same_cpu
+from maipp_bench.kernels import kernel_mode
 from maipp_bench.protocol.protocol import Protocol, Setting, Suite, paper_results
 
 STATS = ("trace", "rmse", "evidence_inside", "evidence_outside", "evidence_total", "traps",
@@ -54,6 +55,7 @@ def machine() -> dict[str, Any]:
 
     return {"platform": platform.platform(), "processor": platform.processor() or "unknown",
             "cpu_model": cpu_model() or "unknown", "cpu_count": os.cpu_count(),
+            "mkl_kernels": kernel_mode(),
             "python": platform.python_version(),
             "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
 
@@ -103,17 +105,17 @@ def row_checks(suite: Suite, eps: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-def ti_row_of_another_cpu(board: dict[str, Any], row: dict[str, Any]) -> str | None:
-    """The CPU a committed TI row was computed on, when it is not this machine's (then its
-    episodes may differ here: float32 fantasy beliefs, docs/protocol.md "Another CPU");
-    None for a row of this CPU or of a method without TI. The machine is the row's own
-    provenance's (a row kept from an earlier run), else the board's."""
-    from maipp_bench import algos  # here: the registry loads every policy
-
-    recorded = (row.get("provenance") or board)["machine"].get("cpu_model")
-    if algos.get_method(row["method"]).params.get("mode") != "ti" or same_cpu(recorded):
+def machine_apart(board: dict[str, Any], row: dict[str, Any]) -> str | None:
+    """The machine that computed a committed row, in words (its CPU model and MKL kernels),
+    when it is not this one; None when both match. The machine is the row's own
+    provenance's (a row kept from an earlier run), else the board's; boards written before
+    2026-11-28 recorded neither: AMD EPYC boxes with MKL's default kernels. eval names it
+    beside a row that differs (docs/protocol.md, "Another CPU")."""
+    recorded = (row.get("provenance") or board)["machine"]
+    cpu, kernels = recorded.get("cpu_model"), recorded.get("mkl_kernels", "default")
+    if same_cpu(cpu) and kernels == kernel_mode():
         return None
-    return recorded or UNRECORDED_CPU
+    return f"{cpu or UNRECORDED_CPU} with MKL's {kernels} kernels"
 
 
 def reproduces(board: dict[str, Any], committed: dict[str, Any], rel: float = 1e-9

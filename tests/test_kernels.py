@@ -1,0 +1,62 @@
+"""Protocol rows run under MKL's CPU-independent kernels (maipp_bench/kernels.py), so that
+boards reproduce on other CPUs; a run that cannot have them says so instead of scoring."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from maipp_bench.kernels import PINNED, kernel_mode
+
+needs_mkl = pytest.mark.skipif(kernel_mode() == "unavailable", reason="torch without MKL")
+
+
+def test_the_suite_runs_under_the_protocol_kernels():
+    # tests/conftest.py pins them before any import makes MKL's first call, as eval does.
+    assert kernel_mode() in PINNED
+    if torch.backends.mkl.is_available():
+        assert kernel_mode() == "COMPATIBLE"
+
+
+@needs_mkl
+def test_eval_refuses_to_score_once_mkl_runs_other_kernels(tmp_path):
+    # tensordict's import makes MKL's first call; eval imported after it cannot pin.
+    code = ("import tensordict; "
+            "from maipp_bench import eval as ev; "
+            f"ev.main(['--suite', 'risk_aware', '--methods', 'random', '--episodes', '1', "
+            f"'--out', {str(tmp_path)!r}, '--leaderboards', {str(tmp_path)!r}])")
+    env = {"PATH": "/usr/bin:/bin", "HOME": str(tmp_path)}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env=env, timeout=120)
+    assert out.returncode != 0
+    assert "error: MKL already runs its default kernels in this process" in out.stderr
+    assert "MKL_CBWR=COMPATIBLE" in out.stderr
+    assert not list(tmp_path.glob("**/*.jsonl"))  # nothing scored
+
+
+@needs_mkl
+def test_kernels_cost_plays_each_method_under_both_kernel_sets(tmp_path, monkeypatch, capsys):
+    """benchmarks/kernels_cost.py: each child runs the kernels it was given (the script
+    checks the mode each reports) and the two play the same episodes."""
+    script = Path(__file__).parents[1] / "benchmarks" / "kernels_cost.py"
+    out = tmp_path / "cost.json"
+    proc = subprocess.run([sys.executable, str(script), "--methods", "random", "--episodes",
+                           "2", "--repeats", "1", "--setting", "budget=2.0", "--out", str(out)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    report = json.loads(out.read_text())["methods"]["random"]
+    assert report["episodes_differing"] == []
+    assert all(len(v) == 1 and v[0] > 0 for v in report["wall_s"].values())
+    # a bad argument fails before any child starts (checked in this process)
+    monkeypatch.syspath_prepend(str(script.parent))
+    from kernels_cost import main
+
+    monkeypatch.setattr(sys, "argv", ["kernels_cost.py", "--methods", "no_such_method"])
+    with pytest.raises(SystemExit) as exit_:
+        main()
+    assert exit_.value.code == 2 and "no_such_method" in capsys.readouterr().err
