@@ -18,14 +18,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from ti_cpu_rounding import KERNELS, differing
+from ti_cpu_rounding import KERNELS, child_env, differing
 
 
 def child(suite_name: str, method: str, setting_key: str, episodes: int) -> dict:
@@ -51,18 +50,15 @@ def child(suite_name: str, method: str, setting_key: str, episodes: int) -> dict
 
 
 def run_child(args: argparse.Namespace, method: str, kernels: str) -> dict:
-    env = {k: v for k, v in os.environ.items() if k != "MKL_CBWR"}
-    env |= {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    if KERNELS[kernels] is not None:
-        env["MKL_CBWR"] = KERNELS[kernels]
     cmd = [sys.executable, __file__, "--child", method, "--suite", args.suite,
            "--setting", args.setting, "--episodes", str(args.episodes)]
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
+    proc = subprocess.run(cmd, env=child_env(kernels), capture_output=True, text=True,
+                          check=False)
     if proc.returncode != 0:
         raise SystemExit(f"{method} / {kernels} kernels failed:\n{proc.stderr[-3000:]}")
     out = json.loads(proc.stdout.strip().splitlines()[-1])
     expected = {"default": "default", "cpu-independent": "COMPATIBLE"}[kernels]
-    if out["kernels"] not in (expected, "unavailable"):
+    if out["kernels"] != expected:
         raise SystemExit(f"{method}: the {kernels} child ran MKL's {out['kernels']} kernels")
     return out
 
@@ -82,8 +78,11 @@ def main() -> None:
         return
     from maipp_bench import algos
     from maipp_bench.hardware import cpu_model
+    from maipp_bench.kernels import kernel_mode
     from maipp_bench.protocol.protocol import load_protocol
 
+    if kernel_mode() in ("unavailable", "unknown"):
+        p.error(f"MKL's kernels are {kernel_mode()} in this torch build: nothing to compare")
     suite = load_protocol(1).suite(args.suite)  # bad names fail here, before any child
     keys = [s.key for s in suite.settings]
     if args.setting not in keys:

@@ -42,6 +42,15 @@ ROOT = Path(__file__).resolve().parent.parent
 KERNELS = {"default": None, "cpu-independent": "COMPATIBLE"}  # MKL_CBWR (None: unset)
 
 
+def child_env(kernels: str) -> dict[str, str]:
+    """The environment of a one-thread child running MKL's ``kernels`` (a KERNELS key)."""
+    env = {k: v for k, v in os.environ.items() if k != "MKL_CBWR"}
+    env |= {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    if KERNELS[kernels] is not None:
+        env["MKL_CBWR"] = KERNELS[kernels]
+    return env
+
+
 def child(suite_name: str, method: str, setting_key: str, episodes: int, dtype: str,
           trace: int | None = None) -> dict:
     """Play the episodes in this process: traces and planning seconds; with ``trace``, that
@@ -96,15 +105,12 @@ def first_split(a: list[dict], b: list[dict]) -> dict | None:
 
 def run_child(args: argparse.Namespace, dtype: str, kernels: str,
               trace: int | None = None) -> dict:
-    env = {k: v for k, v in os.environ.items() if k != "MKL_CBWR"}
-    env |= {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    if KERNELS[kernels] is not None:
-        env["MKL_CBWR"] = KERNELS[kernels]
     cmd = [sys.executable, __file__, "--child", dtype, "--suite", args.suite, "--method",
            args.method, "--setting", args.setting, "--episodes", str(args.episodes)]
     if trace is not None:
         cmd += ["--trace-instance", str(trace)]
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
+    proc = subprocess.run(cmd, env=child_env(kernels), capture_output=True, text=True,
+                          check=False)
     if proc.returncode != 0:
         raise SystemExit(f"{dtype} / {kernels} kernels failed:\n{proc.stderr[-3000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])

@@ -22,8 +22,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from maipp_bench.hardware import cpu_model
-from maipp_bench.kernels import kernel_mode, pin_cpu_kernels, require_pinned_kernels
+from maipp_bench.kernels import PINNED, kernel_mode, pin_cpu_kernels, require_pinned_kernels
 
 # MKL's CPU-independent kernels, asked for before tensordict's import (below) makes MKL's
 # first call and so fixes its code path: rows then reproduce on other CPUs.
@@ -77,6 +76,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def _run_chunk(method: str, cfg, insts: list[int], trial: int, device: str,
                threads: int, policy_kwargs: dict) -> list[dict]:
+    if kernel_mode() not in (*PINNED, "unknown"):  # a worker runs what its parent pinned
+        raise RuntimeError(f"eval worker runs MKL's {kernel_mode()} kernels, not COMPATIBLE")
     torch.set_num_threads(threads)
     with torch.inference_mode():
         return run_chunk(algos.get_method(method), cfg, insts, trial, device=device,
@@ -296,9 +297,9 @@ def _report_reproduction(board: dict, committed: dict, path: Path) -> None:
     for method, setting, verdict in checks:
         if verdict == "differs":
             other = leaderboard.machine_apart(committed, rows[method, setting])
-            where = ("" if other is None else
-                     f" (computed on {other}; this run: {cpu_model()} with MKL's "
-                     f"{kernel_mode()} kernels; docs/protocol.md, 'Another CPU')")
+            here = leaderboard.describe_machine(leaderboard.machine())
+            where = ("" if other is None else f" (computed on {other}; this run: {here}; "
+                     "docs/protocol.md, 'Another CPU')")
             print(f"  differs: {method} {setting}{where}", file=sys.stderr)
 
 

@@ -11,6 +11,9 @@ x86 CPU; under it that Intel Xeon plays those episodes as the AMD EPYC boards do
 (docs/protocol.md, "Another CPU"). ``python -m maipp_bench.eval`` pins it, and every board
 records the mode its rows ran under (``machine.mkl_kernels``).
 
+Not pinned: torch's own vectorised kernels (softmax, attention), whose width follows the
+CPU (:func:`aten_capability`; AVX512 on both boxes measured); boards record it too.
+
 MKL fixes its code path at its first call, and importing tensordict already makes one: pin
 before importing it (this module imports only torch, and only inside its functions).
 """
@@ -19,6 +22,7 @@ from __future__ import annotations
 
 import ctypes
 import os
+import warnings
 from pathlib import Path
 
 # mkl_service.h: the MKL_CBWR_BRANCH setting and two of its values.
@@ -27,55 +31,80 @@ _CBWR_BRANCH_OFF = 1  # nothing set: MKL's default, the CPU's fastest path
 _CBWR_COMPATIBLE = 3
 ENV = "MKL_CBWR"
 PINNED = ("COMPATIBLE", "unavailable")  # the modes a protocol run may compute rows under
+# torch links MKL statically into its CPU library, whose name follows the platform.
+_TORCH_CPU_LIBS = ("libtorch_cpu.so", "libtorch_cpu.dylib", "torch_cpu.dll")
 
 
 def _mkl() -> ctypes.CDLL | None:
-    """torch's (statically linked) MKL service functions, or None for a build without MKL."""
+    """torch's MKL service functions, or None where they cannot be reached."""
     import torch
 
-    lib = Path(torch.__file__).parent / "lib" / "libtorch_cpu.so"
-    if not torch.backends.mkl.is_available() or not lib.is_file():
-        return None
-    try:
-        handle = ctypes.CDLL(str(lib))
-        if not (hasattr(handle, "mkl_serv_cbwr_get") and hasattr(handle, "mkl_serv_cbwr_set")):
+    for name in _TORCH_CPU_LIBS:
+        lib = Path(torch.__file__).parent / "lib" / name
+        if not lib.is_file():
+            continue
+        try:
+            handle = ctypes.CDLL(str(lib))
+            get, set_ = handle.mkl_serv_cbwr_get, handle.mkl_serv_cbwr_set
+        except (OSError, AttributeError):
             return None
-    except OSError:
-        return None
-    return handle
+        for fn in (get, set_):
+            fn.argtypes, fn.restype = [ctypes.c_int], ctypes.c_int
+        return handle
+    return None
 
 
 def kernel_mode() -> str:
     """This process's MKL code path: ``"COMPATIBLE"`` (CPU-independent), ``"default"`` (the
-    CPU's fastest), ``"branch <n>"`` (another ``MKL_CBWR`` value), or ``"unavailable"``
-    (torch without MKL: there is no MKL path to pin)."""
+    CPU's fastest), ``"branch <n>"`` (another ``MKL_CBWR`` value), ``"unavailable"`` (torch
+    without MKL: nothing to pin) or ``"unknown"`` (MKL present but its settings out of
+    reach, e.g. a build linking it dynamically)."""
+    import torch
+
     mkl = _mkl()
     if mkl is None:
-        return "unavailable"
+        return "unknown" if torch.backends.mkl.is_available() else "unavailable"
     branch = mkl.mkl_serv_cbwr_get(_CBWR_BRANCH)
     return {_CBWR_COMPATIBLE: "COMPATIBLE", _CBWR_BRANCH_OFF: "default"}.get(
         branch, f"branch {branch}")
 
 
+def aten_capability() -> str:
+    """The vector width of torch's own CPU kernels here (``"AVX512"``, ``"AVX2"``, ...):
+    float32 softmax and attention round differently at another width."""
+    import torch
+
+    return torch.backends.cpu.get_cpu_capability()
+
+
 def pin_cpu_kernels() -> str:
     """Ask for MKL's CPU-independent kernels in this process and the processes it starts
-    (forked ones inherit the setting, spawned ones read ``MKL_CBWR``). Takes effect only
-    before MKL's first call; returns :func:`kernel_mode` after trying."""
-    os.environ[ENV] = "COMPATIBLE"
+    (forked ones inherit the setting, spawned ones read ``MKL_CBWR``, set only when this
+    process runs them too). Takes effect only before MKL's first call; returns
+    :func:`kernel_mode` after trying."""
     mkl = _mkl()
     if mkl is not None and mkl.mkl_serv_cbwr_get(_CBWR_BRANCH) != _CBWR_COMPATIBLE:
-        mkl.mkl_serv_cbwr_set(_CBWR_COMPATIBLE)  # fails (-8) once MKL has run: checked below
-    return kernel_mode()
+        mkl.mkl_serv_cbwr_set(_CBWR_COMPATIBLE)  # after MKL's first call: refused, kept as is
+    mode = kernel_mode()
+    if mode in ("COMPATIBLE", "unknown"):  # unknown: the variable is all there is to set
+        os.environ[ENV] = "COMPATIBLE"
+    return mode
 
 
 def require_pinned_kernels() -> str:
     """:func:`pin_cpu_kernels`, raising RuntimeError with what to do when MKL already runs
-    another code path in this process (rows computed so could differ on another CPU)."""
+    another code path in this process (rows computed so could differ on another CPU), and
+    warning when MKL's settings are out of reach (then ``MKL_CBWR`` is all that asks)."""
     mode = pin_cpu_kernels()
-    if mode not in PINNED:
+    if mode == "unknown":
+        warnings.warn(f"cannot read MKL's kernel setting in this torch build; {ENV}="
+                      "COMPATIBLE asks for its CPU-independent kernels only if it was set "
+                      "before MKL's first call (docs/protocol.md, 'Another CPU')", stacklevel=2)
+    elif mode not in PINNED:
         raise RuntimeError(
-            f"MKL already runs its {mode} kernels in this process, and protocol rows "
-            "computed so can differ on another CPU (docs/protocol.md, 'Another CPU'): set "
-            f"{ENV}=COMPATIBLE in the environment, or call "
-            "maipp_bench.kernels.pin_cpu_kernels() before importing tensordict or torchrl")
+            f"MKL already runs its {mode} kernels in this process (mkl_cbwr_set refuses a "
+            "change after MKL's first call), and protocol rows computed so can differ on "
+            f"another CPU (docs/protocol.md, 'Another CPU'): set {ENV}=COMPATIBLE in the "
+            "environment, or call maipp_bench.kernels.pin_cpu_kernels() before importing "
+            "tensordict or torchrl")
     return mode

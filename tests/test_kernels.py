@@ -36,7 +36,18 @@ def test_eval_refuses_to_score_once_mkl_runs_other_kernels(tmp_path):
     assert out.returncode != 0
     assert "error: MKL already runs its default kernels in this process" in out.stderr
     assert "MKL_CBWR=COMPATIBLE" in out.stderr
-    assert not list(tmp_path.glob("**/*.jsonl"))  # nothing scored
+
+
+@needs_mkl
+def test_importing_eval_pins_the_kernels_before_tensordict_runs_mkl(tmp_path):
+    # without MKL_CBWR in the environment: eval's import order alone must pin them
+    code = ("import maipp_bench.eval, tensordict, torch; "
+            "from maipp_bench.kernels import kernel_mode; "
+            "torch.randn(64, 64) @ torch.randn(64, 64); print(kernel_mode())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env={"PATH": "/usr/bin:/bin", "HOME": str(tmp_path)}, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["COMPATIBLE"]
 
 
 @needs_mkl

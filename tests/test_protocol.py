@@ -178,31 +178,34 @@ def test_a_run_says_whether_it_reproduces_the_board_it_finds(smoke_board, tmp_pa
 
 
 def test_a_differing_row_names_the_machine_it_was_computed_on(smoke_board, capsys):
-    """A row that differs says which CPU and MKL kernels computed it when they are not this
-    run's (docs/protocol.md, "Another CPU"), and nothing more when they are."""
+    """A row that differs says which CPU, torch kernel width and MKL kernels computed it
+    when any of them is not this run's (docs/protocol.md, "Another CPU"), and nothing more
+    when all match."""
     from maipp_bench.eval import _report_reproduction
-    from maipp_bench.hardware import cpu_model
-    from maipp_bench.kernels import kernel_mode
+    from maipp_bench.kernels import aten_capability, kernel_mode
 
     board, _ = smoke_board
-    assert board["machine"]["mkl_kernels"] == kernel_mode()
+    here = leaderboard.machine()
+    assert (board["machine"]["mkl_kernels"], board["machine"]["aten_capability"]) == (
+        kernel_mode(), aten_capability())
     changed = json.loads(json.dumps(board))
     row = changed["rows"][0]
     row["spot_check"]["trace"][0] += 1.0
     row.pop("provenance", None)  # the board's machine is the row's
-    for recorded, kernels, hint in ((cpu_model(), kernel_mode(), None),
-                                    ("Another CPU 9000", kernel_mode(),
-                                     f"Another CPU 9000 with MKL's {kernel_mode()} kernels"),
-                                    (cpu_model(), "branch 10",
-                                     f"{cpu_model()} with MKL's branch 10 kernels")):
-        changed["machine"] = {**board["machine"], "cpu_model": recorded,
-                              "mkl_kernels": kernels}
+    this_run = f"; this run: {leaderboard.describe_machine(here)};"
+    for apart in ({}, {"cpu_model": "Another CPU 9000"}, {"mkl_kernels": "branch 10"},
+                  {"aten_capability": "AVX2"}):
+        changed["machine"] = {**board["machine"], **apart}
         _report_reproduction(board, changed, Path("committed.json"))
         err = capsys.readouterr().err
         assert f"differs: {row['method']} {row['setting']}" in err
-        assert ("computed on" in err) == (hint is not None)
-        if hint:
-            assert f"computed on {hint}; this run: {cpu_model()} with MKL's {kernel_mode()}" in err
+        named = f"computed on {leaderboard.describe_machine(changed['machine'])}{this_run}"
+        assert (named in err) == bool(apart) and ("computed on" in err) == bool(apart)
+    # a board of before 2026-11-28 records neither kernels: AMD EPYC's default and AVX512
+    old = {k: v for k, v in board["machine"].items()
+           if k not in ("cpu_model", "mkl_kernels", "aten_capability")}
+    assert leaderboard.describe_machine(leaderboard.row_machine({"machine": old}, {})) == (
+        "AMD EPYC (AVX512) with MKL's default kernels")
 
 
 def test_episode_subset_is_marked_and_kept_apart(tmp_path):

@@ -23,7 +23,7 @@ import numpy as np
 
 import maipp_bench
 from maipp_bench.hardware import UNRECORDED_CPU, cpu_model, same_cpu
-from maipp_bench.kernels import kernel_mode
+from maipp_bench.kernels import aten_capability, kernel_mode
 from maipp_bench.protocol.protocol import Protocol, Setting, Suite, paper_results
 
 STATS = ("trace", "rmse", "evidence_inside", "evidence_outside", "evidence_total", "traps",
@@ -55,7 +55,7 @@ def machine() -> dict[str, Any]:
 
     return {"platform": platform.platform(), "processor": platform.processor() or "unknown",
             "cpu_model": cpu_model() or "unknown", "cpu_count": os.cpu_count(),
-            "mkl_kernels": kernel_mode(),
+            "mkl_kernels": kernel_mode(), "aten_capability": aten_capability(),
             "python": platform.python_version(),
             "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
 
@@ -105,17 +105,34 @@ def row_checks(suite: Suite, eps: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
+# What boards written before 2026-11-28 did not record: their 2-core AMD EPYC boxes ran
+# MKL's default kernels and torch's AVX512 ones.
+UNRECORDED = {"mkl_kernels": "default", "aten_capability": "AVX512"}
+
+
+def row_machine(board: dict[str, Any], row: dict[str, Any]) -> dict[str, Any]:
+    """The machine that computed a committed row: its own provenance's (a row kept from an
+    earlier run), else the board's, with :data:`UNRECORDED` filling what it lacks."""
+    return {**UNRECORDED, **(row.get("provenance") or board)["machine"]}
+
+
+def describe_machine(m: dict[str, Any]) -> str:
+    """A machine record in words: CPU model, torch's kernel width and MKL's kernels."""
+    return (f"{m.get('cpu_model') or UNRECORDED_CPU} ({m['aten_capability']}) with MKL's "
+            f"{m['mkl_kernels']} kernels")
+
+
 def machine_apart(board: dict[str, Any], row: dict[str, Any]) -> str | None:
-    """The machine that computed a committed row, in words (its CPU model and MKL kernels),
-    when it is not this one; None when both match. The machine is the row's own
-    provenance's (a row kept from an earlier run), else the board's; boards written before
-    2026-11-28 recorded neither: AMD EPYC boxes with MKL's default kernels. eval names it
-    beside a row that differs (docs/protocol.md, "Another CPU")."""
-    recorded = (row.get("provenance") or board)["machine"]
-    cpu, kernels = recorded.get("cpu_model"), recorded.get("mkl_kernels", "default")
-    if same_cpu(cpu) and kernels == kernel_mode():
+    """The machine that computed a committed row, in words, when its CPU, torch kernel
+    width or MKL kernels are not this process's; None when all three match. eval names it
+    beside any row that differs (docs/protocol.md, "Another CPU"): every board computed
+    before eval pinned MKL's kernels is apart from a pinned run, even on its own CPU, so
+    the note says where the row came from, not why it differs."""
+    m = row_machine(board, row)
+    if same_cpu(m.get("cpu_model")) and (m["aten_capability"], m["mkl_kernels"]) == (
+            aten_capability(), kernel_mode()):
         return None
-    return f"{cpu or UNRECORDED_CPU} with MKL's {kernels} kernels"
+    return describe_machine(m)
 
 
 def reproduces(board: dict[str, Any], committed: dict[str, Any], rel: float = 1e-9
