@@ -7,7 +7,9 @@ first ``--episodes`` instances, in two child processes at once, one torch thread
 under MKL's default kernels, one under ``MKL_CBWR=COMPATIBLE``, so on a 2-core box both
 see the same load; ``--repeats`` times. Each child reports the kernel mode it ran under
 (checked). Reported per method: the chunk's wall seconds (environment and planning) under
-each, their ratio per repeat, and the episodes whose Tr(P_f) differs beyond 1e-9.
+each, their ratio per repeat, the episodes whose Tr(P_f) differs beyond 1e-9 between the
+two, and under each the episodes that differ from the committed board's spot check
+(``leaderboards/<suite>.json``, the first trial, computed on the board's machine).
 
 Usage:
     python benchmarks/kernels_cost.py --suite risk_aware --setting budget=3.0 \\
@@ -45,8 +47,8 @@ def child(suite_name: str, method: str, setting_key: str, episodes: int) -> dict
     with torch.inference_mode():
         rows = run_chunk(spec, suite.env_config(setting), list(suite.instance_seeds[:episodes]),
                          suite.trial_seeds[0], **kwargs)
-    return {"trace": [r["trace"] for r in rows], "wall_s": time.perf_counter() - start,
-            "kernels": kernel_mode()}
+    return {"instance": [r["instance"] for r in rows], "trace": [r["trace"] for r in rows],
+            "wall_s": time.perf_counter() - start, "kernels": kernel_mode()}
 
 
 def run_child(args: argparse.Namespace, method: str, kernels: str) -> dict:
@@ -61,6 +63,14 @@ def run_child(args: argparse.Namespace, method: str, kernels: str) -> dict:
     if out["kernels"] != expected:
         raise SystemExit(f"{method}: the {kernels} child ran MKL's {out['kernels']} kernels")
     return out
+
+
+def differ_from_board(run: dict, spot: dict) -> list[int]:
+    """The instances of a child's chunk whose Tr(P_f) differs from a board's spot check
+    (same trial: the suite's first)."""
+    board = dict(zip(spot["instances"], spot["trace"]))
+    mine = [(i, t) for i, t in zip(run["instance"], run["trace"]) if i in board]
+    return [mine[j][0] for j in differing([t for _, t in mine], [board[i] for i, _ in mine])]
 
 
 def main() -> None:
@@ -97,6 +107,10 @@ def main() -> None:
     if args.repeats < 1:
         p.error("--repeats must be at least 1")
 
+    path = Path(__file__).resolve().parents[1] / "leaderboards" / f"{args.suite}.json"
+    board = json.loads(path.read_text()) if path.exists() else {"rows": []}
+    spots = {r["method"]: r["spot_check"] for r in board["rows"]
+             if r["setting"] == args.setting}
     report = {"suite": args.suite, "setting": args.setting, "episodes": args.episodes,
               "cpu_model": cpu_model(), "methods": {}}
     for method in args.methods:
@@ -112,6 +126,8 @@ def main() -> None:
             "independent_over_default": [c / d for c, d in zip(independent, default)],
             "episodes_differing": differing(runs[0]["default"]["trace"],
                                             runs[0]["cpu-independent"]["trace"]),
+            "differ_from_board": None if method not in spots else {
+                k: differ_from_board(run, spots[method]) for k, run in runs[0].items()},
         }
         print(f"{method}: " + json.dumps(report["methods"][method]), file=sys.stderr)
     text = json.dumps(report, indent=1)

@@ -53,7 +53,7 @@ def test_importing_eval_pins_the_kernels_before_tensordict_runs_mkl(tmp_path):
 @needs_mkl
 def test_kernels_cost_plays_each_method_under_both_kernel_sets(tmp_path, monkeypatch, capsys):
     """benchmarks/kernels_cost.py: each child runs the kernels it was given (the script
-    checks the mode each reports) and the two play the same episodes."""
+    checks the mode each reports) and the two play the same episodes as the board."""
     script = Path(__file__).parents[1] / "benchmarks" / "kernels_cost.py"
     out = tmp_path / "cost.json"
     proc = subprocess.run([sys.executable, str(script), "--methods", "random", "--episodes",
@@ -62,6 +62,8 @@ def test_kernels_cost_plays_each_method_under_both_kernel_sets(tmp_path, monkeyp
     assert proc.returncode == 0, proc.stderr[-3000:]
     report = json.loads(out.read_text())["methods"]["random"]
     assert report["episodes_differing"] == []
+    # the committed random row's first two episodes, under either kernel set
+    assert report["differ_from_board"] == {"default": [], "cpu-independent": []}
     assert all(len(v) == 1 and v[0] > 0 for v in report["wall_s"].values())
     # a bad argument fails before any child starts (checked in this process)
     monkeypatch.syspath_prepend(str(script.parent))
