@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from maipp_bench.kernels import PINNED, kernel_mode, pin_cpu_kernels, require_pinned_kernels
+from maipp_bench.kernels import kernel_mode, pin_cpu_kernels, require_pinned_kernels
 
 # MKL's CPU-independent kernels, asked for before tensordict's import (below) makes MKL's
 # first call and so fixes its code path: rows then reproduce on other CPUs.
@@ -75,9 +75,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def _run_chunk(method: str, cfg, insts: list[int], trial: int, device: str,
-               threads: int, policy_kwargs: dict) -> list[dict]:
-    if kernel_mode() not in (*PINNED, "unknown"):  # a worker runs what its parent pinned
-        raise RuntimeError(f"eval worker runs MKL's {kernel_mode()} kernels, not COMPATIBLE")
+               threads: int, policy_kwargs: dict, kernels: str) -> list[dict]:
+    if kernel_mode() != kernels:  # a worker runs the kernels its parent runs
+        raise RuntimeError(f"eval worker runs MKL's {kernel_mode()} kernels, not {kernels}")
     torch.set_num_threads(threads)
     with torch.inference_mode():
         return run_chunk(algos.get_method(method), cfg, insts, trial, device=device,
@@ -105,7 +105,7 @@ def _checkpoints(pairs: list[str], methods: list[str]) -> dict[str, dict]:
 def main(argv: list[str] | None = None) -> dict:
     args = parse_args(argv)
     try:
-        require_pinned_kernels()
+        kernels = require_pinned_kernels()
     except RuntimeError as err:
         raise SystemExit(f"error: {err}") from None
     keep_freed_memory()
@@ -151,10 +151,11 @@ def main(argv: list[str] | None = None) -> dict:
                 pass
             checkpoints[name] = {"path": str(shown), "sha256": file_sha256(path)}
             policy_kwargs.setdefault(name, {})["checkpoint"] = str(path)
-    # Every row records the method's fingerprint (and a learned method's checkpoint): rows
-    # of another algorithm version, params or checkpoint are neither reused nor reported.
+    # Every row records the method's fingerprint (and a learned method's checkpoint) and
+    # MKL's kernels: rows of another algorithm version, params, checkpoint or kernels are
+    # neither reused nor reported.
     fingerprints = {m: algos.get_method(m).fingerprint() for m in methods}
-    match = {m: {"method_sha256": fingerprints[m],
+    match = {m: {"method_sha256": fingerprints[m], "mkl_kernels": kernels,
                  **({"checkpoint_sha256": checkpoints[m]["sha256"]} if m in checkpoints else {})}
              for m in methods}
     settings = list(suite.settings)
@@ -201,7 +202,7 @@ def main(argv: list[str] | None = None) -> dict:
         bar.update(len(rows))
 
     jobs = [(m, suite.env_config(s), insts, trial, args.device, args.threads,
-             policy_kwargs.get(m, {})) for m, s, trial, insts in chunks]
+             policy_kwargs.get(m, {}), kernels) for m, s, trial, insts in chunks]
     if args.workers <= 1 or len(jobs) <= 1:
         torch.set_num_threads(args.threads)
         for n_done, ((method, setting, trial, _), job) in enumerate(zip(chunks, jobs), 1):

@@ -77,11 +77,20 @@ def aten_capability() -> str:
     return torch.backends.cpu.get_cpu_capability()
 
 
+def chosen_elsewhere() -> str | None:
+    """An ``MKL_CBWR`` the user set to other kernels than the CPU-independent ones (e.g.
+    ``AUTO``: MKL's usual speed, rows that may differ on another CPU), else None."""
+    asked = os.environ.get(ENV, "")
+    return asked if asked and "COMPATIBLE" not in asked.upper() else None
+
+
 def pin_cpu_kernels() -> str:
     """Ask for MKL's CPU-independent kernels in this process and the processes it starts
     (forked ones inherit the setting, spawned ones read ``MKL_CBWR``, set only when this
-    process runs them too). Takes effect only before MKL's first call; returns
-    :func:`kernel_mode` after trying."""
+    process runs them too), unless the user chose others (:func:`chosen_elsewhere`). Takes
+    effect only before MKL's first call; returns :func:`kernel_mode` after trying."""
+    if chosen_elsewhere():
+        return kernel_mode()
     mkl = _mkl()
     if mkl is not None and mkl.mkl_serv_cbwr_get(_CBWR_BRANCH) != _CBWR_COMPATIBLE:
         mkl.mkl_serv_cbwr_set(_CBWR_COMPATIBLE)  # after MKL's first call: refused, kept as is
@@ -93,10 +102,16 @@ def pin_cpu_kernels() -> str:
 
 def require_pinned_kernels() -> str:
     """:func:`pin_cpu_kernels`, raising RuntimeError with what to do when MKL already runs
-    another code path in this process (rows computed so could differ on another CPU), and
-    warning when MKL's settings are out of reach (then ``MKL_CBWR`` is all that asks)."""
+    another code path in this process (rows computed so could differ on another CPU);
+    warning when the user chose other kernels with ``MKL_CBWR``, or when MKL's settings are
+    out of reach (then ``MKL_CBWR`` is all that asks)."""
     mode = pin_cpu_kernels()
-    if mode == "unknown":
+    if (asked := chosen_elsewhere()) and mode not in PINNED:
+        warnings.warn(f"{ENV}={asked}: rows computed under MKL's {mode} kernels may differ on "
+                      "another CPU; the board records the kernels (machine.mkl_kernels) and "
+                      "stored episodes of other kernels are not mixed in (docs/protocol.md, "
+                      "'Another CPU')", stacklevel=2)
+    elif mode == "unknown":
         warnings.warn(f"cannot read MKL's kernel setting in this torch build; {ENV}="
                       "COMPATIBLE asks for its CPU-independent kernels only if it was set "
                       "before MKL's first call (docs/protocol.md, 'Another CPU')", stacklevel=2)

@@ -73,3 +73,32 @@ def test_kernels_cost_plays_each_method_under_both_kernel_sets(tmp_path, monkeyp
     with pytest.raises(SystemExit) as exit_:
         main()
     assert exit_.value.code == 2 and "no_such_method" in capsys.readouterr().err
+
+
+@needs_mkl
+def test_kernels_chosen_with_mkl_cbwr_are_recorded_and_never_mixed(tmp_path):
+    """MKL_CBWR=AUTO (MKL's usual speed): eval warns, scores and records those kernels; a
+    run under the pinned kernels on the same store recomputes instead of reusing them."""
+    from maipp_bench.eval import main
+
+    args = ["--suite", "risk_aware", "--methods", "random", "--budgets", "2", "--episodes", "2",
+            "--out", str(tmp_path / "res"), "--leaderboards", str(tmp_path / "lb"),
+            "--no-progress", "--workers", "1"]
+    out = subprocess.run([sys.executable, "-m", "maipp_bench.eval", *args], capture_output=True,
+                         text=True, timeout=300, cwd=tmp_path,
+                         env={"PATH": "/usr/bin:/bin", "HOME": str(tmp_path), "MKL_CBWR": "AUTO"})
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "MKL_CBWR=AUTO: rows computed under MKL's branch 2 kernels may differ" in out.stderr
+    subset = tmp_path / "res" / "subset-2"
+
+    def stored() -> list[str]:
+        lines = (subset / "risk_aware" / "random.jsonl").read_text().splitlines()
+        return [json.loads(line)["mkl_kernels"] for line in lines]
+
+    assert stored() == ["branch 2"] * 2
+    board = json.loads((subset / "leaderboards" / "risk_aware.json").read_text())
+    assert board["machine"]["mkl_kernels"] == "branch 2"
+    board = main(args)  # this process runs the pinned kernels (tests/conftest.py)
+    assert stored() == ["branch 2"] * 2 + ["COMPATIBLE"] * 2
+    assert board["machine"]["mkl_kernels"] == "COMPATIBLE"
+    assert [r["n"] for r in board["rows"]] == [2]
