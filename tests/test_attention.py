@@ -119,11 +119,12 @@ def test_encoder_read_at_decoder_rows_equals_full_encoder(layers, dtype, tol):
         torch.testing.assert_close(net.encode(x, read), full, rtol=tol, atol=tol)
 
 
-@pytest.mark.parametrize("dtype,tol", [(torch.float32, 0.0), (torch.float64, 1e-12)])
+@pytest.mark.parametrize("dtype,tol", [(torch.float32, 1e-6), (torch.float64, 1e-12)])
 def test_row_attention_is_the_layers_own(dtype, tol):
-    # attend_rows skips nn.MultiheadAttention's sequence-first copies. In float32, what the
-    # network runs in, its outputs must be the layer's very bits, or the committed TI
-    # leaderboard rows would no longer recompute.
+    # attend_rows skips nn.MultiheadAttention's sequence-first copies. Under MKL's default
+    # kernels its float32 outputs are the layer's very bits; under the CPU-independent ones
+    # the suite runs (tests/conftest.py) products of another layout round apart by ~1e-7.
+    # The committed TI rows' recompute is checked directly (test_leaderboards.py).
     torch.manual_seed(0)
     attn = nn.MultiheadAttention(128, 4, batch_first=True).to(dtype)
     q = torch.randn(6, 9, 128, dtype=dtype)
