@@ -6,8 +6,9 @@ Each of ``--methods`` plays one chunk, the first trial of ``--setting`` over the
 first ``--episodes`` instances, in two child processes at once, one torch thread each: one
 under MKL's default kernels, one under ``MKL_CBWR=COMPATIBLE``, so on a 2-core box both
 see the same load; ``--repeats`` times. Each child reports the kernel mode it ran under
-(checked). Reported per method: the chunk's wall seconds (environment and planning) under
-each, their ratio per repeat, the episodes whose Tr(P_f) differs beyond 1e-9 between the
+(checked); ``--branches`` also plays it alone under other ``MKL_CBWR`` branches. Reported
+per method: the chunk's wall seconds (environment and planning) under each, their ratio per
+repeat, the episodes whose Tr(P_f) differs beyond 1e-9 between the
 two, and under each the episodes that differ from the committed board's spot check
 (``leaderboards/<suite>.json``, the first trial, computed on the board's machine).
 
@@ -26,7 +27,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from ti_cpu_rounding import KERNELS, child_env, differing
+from ti_cpu_rounding import KERNELS, child_env, differing, emit
 
 
 def child(suite_name: str, method: str, setting_key: str, episodes: int) -> dict:
@@ -59,8 +60,8 @@ def run_child(args: argparse.Namespace, method: str, kernels: str) -> dict:
     if proc.returncode != 0:
         raise SystemExit(f"{method} / {kernels} kernels failed:\n{proc.stderr[-3000:]}")
     out = json.loads(proc.stdout.strip().splitlines()[-1])
-    expected = {"default": "default", "cpu-independent": "COMPATIBLE"}[kernels]
-    if out["kernels"] != expected:
+    expected = {"default": "default", "cpu-independent": "COMPATIBLE"}.get(kernels)
+    if expected is not None and out["kernels"] != expected:
         raise SystemExit(f"{method}: the {kernels} child ran MKL's {out['kernels']} kernels")
     return out
 
@@ -80,6 +81,10 @@ def main() -> None:
     p.add_argument("--episodes", type=int, default=30)
     p.add_argument("--methods", nargs="+", default=["greedy", "ours_greedy", "ours_ti"])
     p.add_argument("--repeats", type=int, default=2)
+    p.add_argument("--branches", nargs="*", default=[], metavar="BRANCH",
+                   help="also play each method alone under these MKL_CBWR branches (AUTO, "
+                        "AVX2, ...), once each: their wall seconds and episodes differing "
+                        "from the board")
     p.add_argument("--out", type=Path)
     p.add_argument("--child", help=argparse.SUPPRESS)
     args = p.parse_args()
@@ -129,11 +134,14 @@ def main() -> None:
             "differ_from_board": None if method not in spots else {
                 k: differ_from_board(run, spots[method]) for k, run in runs[0].items()},
         }
+        for branch in args.branches:  # alone: their seconds compare with a lone run only
+            run = run_child(args, method, branch)
+            report["methods"][method][f"branch {branch}"] = {
+                "kernels": run["kernels"], "wall_s": run["wall_s"],
+                "differ_from_board": None if method not in spots
+                else differ_from_board(run, spots[method])}
         print(f"{method}: " + json.dumps(report["methods"][method]), file=sys.stderr)
-    text = json.dumps(report, indent=1)
-    print(text)
-    if args.out:
-        args.out.write_text(text + "\n")
+    emit(report, args.out)
 
 
 if __name__ == "__main__":

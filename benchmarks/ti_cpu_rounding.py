@@ -43,12 +43,21 @@ KERNELS = {"default": None, "cpu-independent": "COMPATIBLE"}  # MKL_CBWR (None: 
 
 
 def child_env(kernels: str) -> dict[str, str]:
-    """The environment of a one-thread child running MKL's ``kernels`` (a KERNELS key)."""
+    """The environment of a one-thread child running MKL's ``kernels``: a KERNELS key, or
+    an ``MKL_CBWR`` branch (``AUTO``, ``AVX2``, ...)."""
     env = {k: v for k, v in os.environ.items() if k != "MKL_CBWR"}
     env |= {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    if KERNELS[kernels] is not None:
-        env["MKL_CBWR"] = KERNELS[kernels]
+    if KERNELS.get(kernels, kernels) is not None:
+        env["MKL_CBWR"] = KERNELS.get(kernels, kernels)
     return env
+
+
+def emit(report: dict, out: Path | None) -> None:
+    """Print the report as JSON, and write it to ``out`` when given."""
+    text = json.dumps(report, indent=1)
+    print(text)
+    if out:
+        out.write_text(text + "\n")
 
 
 def child(suite_name: str, method: str, setting_key: str, episodes: int, dtype: str,
@@ -190,10 +199,7 @@ def main() -> None:
             default, independent = (f.result()["decisions"] for f in replays)
         report["trace_instance"] = {"instance": args.trace_instance,
                                     "first_split": first_split(default, independent)}
-    text = json.dumps(report, indent=1)
-    print(text)
-    if args.out:
-        args.out.write_text(text + "\n")
+    emit(report, args.out)
 
 
 if __name__ == "__main__":

@@ -22,6 +22,7 @@ before importing it (this module imports only torch, and only inside its functio
 from __future__ import annotations
 
 import ctypes
+import functools
 import os
 import warnings
 from pathlib import Path
@@ -36,6 +37,7 @@ PINNED = ("COMPATIBLE", "unavailable")  # the modes a protocol run may compute r
 _TORCH_CPU_LIBS = ("libtorch_cpu.so", "libtorch_cpu.dylib", "torch_cpu.dll")
 
 
+@functools.cache  # loaded once: eval's workers ask for the mode at every chunk
 def _mkl() -> ctypes.CDLL | None:
     """torch's MKL service functions, or None where they cannot be reached."""
     import torch

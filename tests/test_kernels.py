@@ -57,13 +57,16 @@ def test_kernels_cost_plays_each_method_under_both_kernel_sets(tmp_path, monkeyp
     script = Path(__file__).parents[1] / "benchmarks" / "kernels_cost.py"
     out = tmp_path / "cost.json"
     proc = subprocess.run([sys.executable, str(script), "--methods", "random", "--episodes",
-                           "2", "--repeats", "1", "--setting", "budget=2.0", "--out", str(out)],
+                           "2", "--repeats", "1", "--setting", "budget=2.0", "--branches", "AUTO",
+                           "--out", str(out)],
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     report = json.loads(out.read_text())["methods"]["random"]
     assert report["episodes_differing"] == []
     # the committed random row's first two episodes, under either kernel set
     assert report["differ_from_board"] == {"default": [], "cpu-independent": []}
+    auto = report["branch AUTO"]  # a branch asked for, played alone
+    assert auto["kernels"] == "branch 2" and auto["differ_from_board"] == [] and auto["wall_s"] > 0
     assert all(len(v) == 1 and v[0] > 0 for v in report["wall_s"].values())
     # a bad argument fails before any child starts (checked in this process)
     monkeypatch.syspath_prepend(str(script.parent))
