@@ -33,7 +33,10 @@
 # episode, as the protocol draws them; maipp_bench/heldout.py HELDOUT_SETS); the draws before
 # played set 1, every held-out episode on one roadmap (docs/results.md, "Held-out episodes
 # share one roadmap"). HELDOUT_SET=1 reproduces those choices.
-# Usage: [SELECT=1 [SELECT_BUDGETS="2 5" SELECT_EPISODES="160 64"]] [FINAL=1] [OVERRIDES="k=v ..."] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
+# Usage: [SELECT=1 [SELECT_BUDGETS="2 5" SELECT_EPISODES="160 64"]] [FINAL=1] [OVERRIDES="k=v ..."] [UPDATES="U1 U2 U3"] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
+# UPDATES (smoke runs and tests; 2026-11-28) stops the stages after U1, U2 and U3 updates
+# instead of M1, M2 and M3 minutes, so that a busy machine makes the same run (stage 3
+# needs 5 updates for a snapshot to average).
 # OVERRIDES are Hydra overrides typed after each stage's own fields, so they win (e.g.
 # algo.precision=bf16 on a CPU with native bf16, half float32's speed elsewhere; the tests'
 # tiny task: env=tiny n_envs=3 ...); none by default.
@@ -85,6 +88,19 @@ for m in "$M1" "$M2" "$M3"; do  # minutes may be fractional (a short smoke run)
         || { echo "train_2h.sh: stage minutes must be positive numbers, got '$m'" >&2; exit 2; }
 done
 M12=$(python -c "print($M1 + $M2)")  # stage 2 resumes: its limit counts stage 1's minutes
+if [[ -n ${UPDATES:-} ]]; then
+    read -ra UPD <<< "$UPDATES"
+    ((${#UPD[@]} == 3)) && [[ ${UPD[0]} =~ ^[1-9][0-9]*$ && ${UPD[1]} =~ ^[1-9][0-9]*$ && ${UPD[2]} =~ ^[1-9][0-9]*$ ]] \
+        || { echo "train_2h.sh: UPDATES must be three positive integers (stages 1, 2 and 3), got '$UPDATES'" >&2; exit 2; }
+    # stage 2 resumes: its limit counts stage 1's updates; stage 3 starts from init, at 0
+    L1=(total_updates="${UPD[0]}" max_minutes=0)
+    L2=(total_updates="$((UPD[0] + UPD[1]))" max_minutes=0)
+    L3=(total_updates="${UPD[2]}" max_minutes=0)
+else
+    L1=(total_updates=100000 max_minutes="$M1")
+    L2=(total_updates=100000 max_minutes="$M12")
+    L3=(total_updates=100000 max_minutes="$M3")
+fi
 HERE=$(dirname "$0")
 # The choices and the export run benchmarks/*.py, whose imports find maipp_bench through its
 # installation alone (sys.path starts at benchmarks/): a stale or missing editable install
@@ -96,12 +112,12 @@ print(pathlib.Path(maipp_bench.__file__).resolve().parents[1])" 2>/dev/null) || 
     || { echo "train_2h.sh: benchmarks/*.py import maipp_bench from '${FOUND:-nowhere}', not from this checkout $ROOT: install it first (pip install -e $ROOT)" >&2; exit 2; }
 S2=()  # stage 2's extra fields
 [[ $SELECT == 1 ]] && S2=(keep_snapshots=true snapshot_every=3)
-TRAIN="python -m maipp_bench.train algo=ours threads=2 progress=false total_updates=100000"
+TRAIN="python -m maipp_bench.train algo=ours threads=2 progress=false"
 read -ra EXTRA <<< "${OVERRIDES:-}"  # words, typed last in every stage
 mkdir -p "$OUT"
 echo "start $(date -u +%FT%TZ)" | tee "$OUT/wall.txt"
 
-$TRAIN seed="$SEED" algo.intent_rollouts=4 algo.intent_depth=5 max_minutes="$M1" \
+$TRAIN seed="$SEED" algo.intent_rollouts=4 algo.intent_depth=5 "${L1[@]}" \
     eval_every=0 hydra.run.dir="$OUT/stage1" "${EXTRA[@]}"
 echo "stage1 done $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
 
@@ -109,7 +125,7 @@ mkdir -p "$OUT/stage2" && cp "$OUT/stage1/checkpoint.pt" "$OUT/stage2/checkpoint
 # seed=0: until 2026-11-26 a resume took untyped fields from the defaults, so every draw's
 # stage 2 reset its worlds from seed 0; typed, so that the documented draws reproduce.
 $TRAIN resume="$OUT/stage2/checkpoint.pt" seed=0 algo.intent_rollouts=4 algo.intent_depth=5 \
-    n_envs=16 algo.epochs=4 algo.target_kl=0.02 max_minutes="$M12" eval_every=0 "${S2[@]}" \
+    n_envs=16 algo.epochs=4 algo.target_kl=0.02 "${L2[@]}" eval_every=0 "${S2[@]}" \
     hydra.run.dir="$OUT/stage2" "${EXTRA[@]}"
 echo "stage2 done $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
 
@@ -125,9 +141,10 @@ if [[ $SELECT == 1 ]]; then
 fi
 $TRAIN init="$START" seed="$((SEED + 2))" algo.lr="$LR3" \
     algo.intent_rollouts=8 algo.intent_depth=5 n_envs=16 algo.epochs=4 algo.target_kl=0.02 \
-    max_minutes="$M3" eval_every=0 keep_snapshots=true snapshot_every=5 \
+    "${L3[@]}" eval_every=0 keep_snapshots=true snapshot_every=5 \
     hydra.run.dir="$OUT/stage3" "${EXTRA[@]}"
-LAST=$(ls "$OUT/stage3/snapshots" | sed -n 's/update_0*\([0-9]*\)\.pt/\1/p' | sort -n | tail -1)
+LAST=$( (ls "$OUT/stage3/snapshots" 2>/dev/null || true) | sed -n 's/update_0*\([0-9]*\)\.pt/\1/p' | sort -n | tail -1)
+[[ -n $LAST ]] || { echo "train_2h.sh: stage 3 made fewer than 5 updates (a snapshot every 5): nothing to average; give it more minutes (M3) or updates (UPDATES)" >&2; exit 1; }
 python -m maipp_bench.train algo=ours resume="$OUT/stage3/checkpoint.pt" total_updates=0 \
     threads=2 progress=false export="$OUT/avg.pt" export_from="5-$LAST" \
     hydra.run.dir="$OUT/export" \

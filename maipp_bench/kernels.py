@@ -7,10 +7,11 @@ interest threshold) and change the episode from there on: an Intel Xeon with MKL
 kernels played one episode of 240 of the ``risk_aware`` TI rows' first trial, and one
 ``agents10`` spot check, differently from the AMD EPYC boxes that computed the boards.
 MKL's conditional numerical reproducibility mode ``COMPATIBLE`` runs one code path on every
-x86 CPU; under it that Intel Xeon plays those TI episodes as the AMD EPYC boards do (the
-boards predate the pinning: a few planner episodes still differ there, docs/protocol.md,
-"Another CPU"). ``python -m maipp_bench.eval`` pins it unless ``MKL_CBWR`` asks for other
-kernels, and every board and stored episode records the mode (``mkl_kernels``).
+x86 CPU; under it that Intel Xeon plays those TI episodes as the AMD EPYC boards do (a few
+planner episodes still differ there, under every MKL code path: something else rounds
+differently; docs/protocol.md, "Another CPU"). ``python -m maipp_bench.eval`` pins it unless
+``MKL_CBWR`` asks for other kernels, and every board and stored episode records the mode
+(``mkl_kernels``).
 
 Not pinned: torch's own vectorised kernels (softmax, attention), whose width follows the
 CPU (:func:`aten_capability`; AVX512 on both boxes measured); boards record it too.
