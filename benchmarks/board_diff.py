@@ -17,17 +17,14 @@ Usage:
 from __future__ import annotations
 
 import argparse
-import json
-from pathlib import Path
+
+import boards
 
 
 def differences(board: dict, method: str, against: list[str]) -> list[dict]:
     """One dict per setting: ``setting``, ``mean`` of ``method`` and, per other method,
     ``(difference, standard error)``; settings where ``method`` has no row are skipped."""
-    rows = {(r["method"], r["setting"]): r for r in board["rows"]}
-    missing = sorted({m for m in [method, *against]} - {m for m, _ in rows})
-    if missing:
-        raise SystemExit(f"not on the {board['suite']} board: {', '.join(missing)}")
+    rows = boards.keyed(board, [method, *against])
     out = []
     for setting in dict.fromkeys(s for m, s in rows if m == method):
         mine = rows[method, setting]
@@ -53,9 +50,9 @@ def main() -> None:
                    help="read --method's rows from the board in DIR instead (e.g. a "
                         "candidate's, run with eval --leaderboards DIR --fresh-board)")
     args = p.parse_args()
-    board = json.loads((Path(args.leaderboards) / f"{args.suite}.json").read_text())
+    board = boards.load(args.suite, args.leaderboards)
     if args.method_from:
-        other = json.loads((Path(args.method_from) / f"{args.suite}.json").read_text())
+        other = boards.load(args.suite, args.method_from)
         theirs = [r for r in other["rows"] if r["method"] == args.method]
         if not theirs:
             raise SystemExit(f"{args.method} has no row on {args.method_from}/{args.suite}.json")

@@ -11,21 +11,18 @@ Usage:
 from __future__ import annotations
 
 import argparse
-import json
-from pathlib import Path
+
+import boards
 
 
 def table(board: dict, methods: list[str] | None = None, setting_prefix: str = "") -> str:
     """Markdown table of ``board``'s rows whose setting starts with ``setting_prefix``, in
     the board's order of methods and settings (``methods`` picks and orders them)."""
-    rows = {(r["method"], r["setting"]): r for r in board["rows"]
-            if r["setting"].startswith(setting_prefix)}
+    rows = {k: r for k, r in boards.keyed(board, methods).items()
+            if k[1].startswith(setting_prefix)}
     if not rows:
         raise SystemExit(f"no setting of the {board['suite']} board starts with {setting_prefix!r}")
     on_board = list(dict.fromkeys(m for m, _ in rows))
-    missing = sorted(set(methods or []) - set(on_board))
-    if missing:
-        raise SystemExit(f"not on the {board['suite']} board: {', '.join(missing)}")
     settings = list(dict.fromkeys(s for _, s in rows))
     lines = [
         "| method | " + " | ".join(settings) + " | traps / episode | planning s / episode |",
@@ -51,7 +48,7 @@ def main() -> None:
                    help="only settings starting with this, e.g. comm_range=0.3")
     p.add_argument("--leaderboards", default="leaderboards")
     args = p.parse_args()
-    board = json.loads((Path(args.leaderboards) / f"{args.suite}.json").read_text())
+    board = boards.load(args.suite, args.leaderboards)
     print(table(board, args.methods, args.setting_prefix))
 
 
