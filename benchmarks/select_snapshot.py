@@ -8,9 +8,10 @@ seeds from the ``--first``-th on, never the protocol's) at each ``--budget``:
 ``--budget`` (a B = 5 episode costs about two B = 2 ones); the one with the lowest score is
 chosen, ties going to the later candidate. The score is the
 mean Tr(P_f) at one budget and, at several budgets, the geometric mean of their means
-(training's ``eval/trace``). The candidates are either ``--run``'s own ``checkpoint.pt``
-and the snapshots of its ``snapshots/`` from update ``last - window`` on (oldest first),
-or the files named by ``--candidates`` in the order given; the last candidate is the
+(training's ``eval/trace``). The candidates are either each ``--run``'s own
+``checkpoint.pt`` and the snapshots of its ``snapshots/`` from update ``last - window`` on
+(oldest first; several runs, as ``train_2h.sh``'s ``POP=2`` passes them, in the order
+given), or the files named by ``--candidates`` in the order given; the last candidate is the
 reference that the table's paired differences are taken against. Candidates are scored
 in ``--workers`` processes of one thread each. The table goes to stderr and, with the
 choice, to ``--out`` as JSON (each candidate's ``mean`` is its score; with several
@@ -91,7 +92,8 @@ def _traces(path: str, method: str, budget: float, episodes: int, first: int,
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     source = p.add_mutually_exclusive_group(required=True)
-    source.add_argument("--run", type=Path, help="a training run's directory")
+    source.add_argument("--run", type=Path, nargs="+",
+                        help="one or more training runs' directories")
     source.add_argument("--candidates", type=Path, nargs="+", metavar="FILE",
                         help="checkpoints or policy files (the last is the reference)")
     p.add_argument("--window", type=int, default=15, metavar="UPDATES",
@@ -126,8 +128,8 @@ def main() -> None:
     from maipp_bench.train import trace_score
     get_method(args.method)  # an unknown method fails here, before any worker starts
 
-    found = (candidates(args.run, args.window) if args.run is not None
-             else named(args.candidates))
+    found = ([c for run in args.run for c in candidates(run, args.window)]
+             if args.run is not None else named(args.candidates))
     start = time.perf_counter()
     with ProcessPoolExecutor(args.workers, mp_context=get_context("spawn"),
                              initializer=_init_worker) as pool:
@@ -137,7 +139,7 @@ def main() -> None:
         traces = [[f.result() for f in per_budget] for per_budget in futures]
     seconds = time.perf_counter() - start
 
-    # The last candidate is the reference: with --run, the run's own end (what
+    # The last candidate is the reference: with --run, the (last) run's own end (what
     # train_2h.sh without SELECT continues from); with --candidates, the file named last.
     ref = traces[-1]
     table = []

@@ -33,7 +33,16 @@
 # episode, as the protocol draws them; maipp_bench/heldout.py HELDOUT_SETS); the draws before
 # played set 1, every held-out episode on one roadmap (docs/results.md, "Held-out episodes
 # share one roadmap"). HELDOUT_SET=1 reproduces those choices.
-# Usage: [SELECT=1 [SELECT_BUDGETS="2 5" SELECT_EPISODES="160 64"]] [FINAL=1] [OVERRIDES="k=v ..."] [UPDATES="U1 U2 U3"] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
+# With POP=2 (2026-11-29; needs SELECT=1), stages 1-2 train two members side by side,
+# one torch thread each (seeds SEED and SEED + 1000; the second in OUT_DIR/m1/), so each
+# makes about half the updates of one two-thread run, and the start choice looks at both:
+# each member's end and its snapshots of the last SELECT_WINDOW updates (default 6 with
+# POP=2: three per member), on B = 2 and 5 by default (SELECT_BUDGETS "2 5",
+# SELECT_EPISODES "96 48"; about as long as POP=1's choice). Why: the draws' spread between
+# seeds is larger than any lever tried, no early training signal tells seeds apart, and
+# held-out episodes at the end of stage 2 rank them (docs/results.md, "All two-hour runs,
+# one table" and "No early signal in the curves").
+# Usage: [SELECT=1 [SELECT_BUDGETS="2 5" SELECT_EPISODES="160 64"]] [POP=2] [FINAL=1] [OVERRIDES="k=v ..."] [UPDATES="U1 U2 U3"] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
 # UPDATES (smoke runs and tests; 2026-11-28) stops the stages after U1, U2 and U3 updates
 # instead of M1, M2 and M3 minutes, so that a busy machine makes the same run (stage 3
 # needs 5 updates for a snapshot to average).
@@ -50,9 +59,15 @@ OUT=${1:?usage: train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]}
 SEED=${2:-0}
 SELECT=${SELECT:-0}
 FINAL=${FINAL:-0}
-SELECT_WINDOW=${SELECT_WINDOW:-15}
-SELECT_EPISODES=${SELECT_EPISODES:-160}
-SELECT_BUDGETS=${SELECT_BUDGETS:-2}
+POP=${POP:-1}
+[[ $POP == 1 || $POP == 2 ]] \
+    || { echo "train_2h.sh: POP must be 1 or 2, got '$POP'" >&2; exit 2; }
+[[ $POP == 1 || $SELECT == 1 ]] \
+    || { echo "train_2h.sh: POP=2 needs SELECT=1 (the choice between the members)" >&2; exit 2; }
+if [[ $POP == 2 ]]; then W=6 B="2 5" E="96 48"; else W=15 B=2 E=160; fi
+SELECT_WINDOW=${SELECT_WINDOW:-$W}
+SELECT_EPISODES=${SELECT_EPISODES:-$E}
+SELECT_BUDGETS=${SELECT_BUDGETS:-$B}
 read -ra SELECT_EPS <<< "$SELECT_EPISODES"
 read -ra SELECT_BS <<< "$SELECT_BUDGETS"
 export HELDOUT_SET=${HELDOUT_SET:-2}  # final_choice.sh reads it too
@@ -112,34 +127,52 @@ print(pathlib.Path(maipp_bench.__file__).resolve().parents[1])" 2>/dev/null) || 
     || { echo "train_2h.sh: benchmarks/*.py import maipp_bench from '${FOUND:-nowhere}', not from this checkout $ROOT: install it first (pip install -e $ROOT)" >&2; exit 2; }
 S2=()  # stage 2's extra fields
 [[ $SELECT == 1 ]] && S2=(keep_snapshots=true snapshot_every=3)
-TRAIN="python -m maipp_bench.train algo=ours threads=2 progress=false"
+TRAIN="python -m maipp_bench.train algo=ours progress=false"
 read -ra EXTRA <<< "${OVERRIDES:-}"  # words, typed last in every stage
 mkdir -p "$OUT"
 echo "start $(date -u +%FT%TZ)" | tee "$OUT/wall.txt"
 
-$TRAIN seed="$SEED" algo.intent_rollouts=4 algo.intent_depth=5 "${L1[@]}" \
-    eval_every=0 hydra.run.dir="$OUT/stage1" "${EXTRA[@]}"
-echo "stage1 done $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
-
-mkdir -p "$OUT/stage2" && cp "$OUT/stage1/checkpoint.pt" "$OUT/stage2/checkpoint.pt"
-# seed=0: until 2026-11-26 a resume took untyped fields from the defaults, so every draw's
-# stage 2 reset its worlds from seed 0; typed, so that the documented draws reproduce.
-$TRAIN resume="$OUT/stage2/checkpoint.pt" seed=0 algo.intent_rollouts=4 algo.intent_depth=5 \
-    n_envs=16 algo.epochs=4 algo.target_kl=0.02 "${L2[@]}" eval_every=0 "${S2[@]}" \
-    hydra.run.dir="$OUT/stage2" "${EXTRA[@]}"
-echo "stage2 done $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
+# stages 1-2 of one member: DIR SEED STAGE2_SEED THREADS (explicit returns: set -e does
+# not hold inside a function called from an || list)
+stages12() {
+    local dir=$1 seed=$2 seed2=$3 threads=$4
+    $TRAIN seed="$seed" algo.intent_rollouts=4 algo.intent_depth=5 "${L1[@]}" \
+        eval_every=0 threads="$threads" hydra.run.dir="$dir/stage1" "${EXTRA[@]}" || return
+    echo "stage1 done $(date -u +%FT%TZ) $dir" | tee -a "$OUT/wall.txt"
+    mkdir -p "$dir/stage2" && cp "$dir/stage1/checkpoint.pt" "$dir/stage2/checkpoint.pt" \
+        || return
+    $TRAIN resume="$dir/stage2/checkpoint.pt" seed="$seed2" algo.intent_rollouts=4 \
+        algo.intent_depth=5 n_envs=16 algo.epochs=4 algo.target_kl=0.02 "${L2[@]}" \
+        eval_every=0 threads="$threads" "${S2[@]}" hydra.run.dir="$dir/stage2" "${EXTRA[@]}" \
+        || return
+    echo "stage2 done $(date -u +%FT%TZ) $dir" | tee -a "$OUT/wall.txt"
+}
+# seed=0 in stage 2: until 2026-11-26 a resume took untyped fields from the defaults, so
+# every draw's stage 2 reset its worlds from seed 0; typed, so that the documented draws
+# reproduce. POP=2's second member takes its own seed there too.
+RUNS2=("$OUT/stage2")
+if [[ $POP == 2 ]]; then
+    stages12 "$OUT/m1" "$((SEED + 1000))" "$((SEED + 1000))" 1 &
+    M1PID=$!
+    stages12 "$OUT" "$SEED" 0 1 || { kill "$M1PID" 2>/dev/null; exit 1; }
+    wait "$M1PID" || { echo "train_2h.sh: the second member ($OUT/m1) failed" >&2; exit 1; }
+    RUNS2=("$OUT/m1/stage2" "$OUT/stage2")  # the last is the choice's reference
+else
+    stages12 "$OUT" "$SEED" 0 2
+fi
 
 START="$OUT/stage2/checkpoint.pt"
 NOTE="fixed before the run"
 if [[ $SELECT == 1 ]]; then
-    START=$(python "$HERE/select_snapshot.py" --run "$OUT/stage2" --window "$SELECT_WINDOW" \
+    START=$(python "$HERE/select_snapshot.py" --run "${RUNS2[@]}" --window "$SELECT_WINDOW" \
         --method ours_ti --budget "${SELECT_BS[@]}" --episodes "${SELECT_EPS[@]}" --workers 2 \
         --heldout-set "$HELDOUT_SET" \
         --out "$OUT/select.json" | tail -1)
     echo "selected $START $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
-    NOTE="fixed before the run; stage 3 started from $START, chosen on held-out episodes at B = $(printf '%s\n' "${SELECT_BS[@]}" | sort -g | paste -sd ' ') ($OUT/select.json); wall_s_with_init leaves out the updates of stage 2 after it and the minutes of the choice; the whole wall clock of the run is in $OUT/wall.txt"
+    [[ $POP == 2 ]] && NOTE="two members side by side in stages 1-2 (seeds $SEED and $((SEED + 1000)), one thread each); "
+    NOTE="${NOTE/#fixed before the run/}fixed before the run; stage 3 started from $START, chosen on held-out episodes at B = $(printf '%s\n' "${SELECT_BS[@]}" | sort -g | paste -sd ' ') ($OUT/select.json); wall_s_with_init leaves out the updates of stage 2 after it and the minutes of the choice; the whole wall clock of the run is in $OUT/wall.txt"
 fi
-$TRAIN init="$START" seed="$((SEED + 2))" algo.lr="$LR3" \
+$TRAIN init="$START" seed="$((SEED + 2))" algo.lr="$LR3" threads=2 \
     algo.intent_rollouts=8 algo.intent_depth=5 n_envs=16 algo.epochs=4 algo.target_kl=0.02 \
     "${L3[@]}" eval_every=0 keep_snapshots=true snapshot_every=5 \
     hydra.run.dir="$OUT/stage3" "${EXTRA[@]}"

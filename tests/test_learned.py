@@ -572,6 +572,7 @@ def test_training_scripts_reject_bad_arguments_before_training(script, args, mes
     ("SELECT_BUDGETS", "2 2.0", "SELECT_BUDGETS must name each budget once, got '2 2.0'"),
     ("SELECT_BUDGETS", " ", "SELECT_BUDGETS must name each budget once"),
     ("HELDOUT_SET", "3", "HELDOUT_SET must be 1 or 2, got '3'"),
+    ("POP", "3", "POP must be 1 or 2, got '3'"), ("POP", "2", "POP=2 needs SELECT=1"),
     ("UPDATES", "1 2", "UPDATES must be three positive integers (stages 1, 2 and 3), got '1 2'"),
     ("UPDATES", "1 0 5", "UPDATES must be three positive integers")])
 def test_train_2h_rejects_a_bad_switch_before_training(tmp_path, variable, value, message):
@@ -602,11 +603,13 @@ def test_train_2h_refuses_a_maipp_bench_other_than_its_checkout(tmp_path, body):
     assert not out.exists()
 
 
-def test_train_2h_runs_its_stages_and_the_choices_end_to_end(tmp_path):
+@pytest.mark.parametrize("pop", ["1", "2"])
+def test_train_2h_runs_its_stages_and_the_choices_end_to_end(tmp_path, pop):
     """benchmarks/train_2h.sh with SELECT=1 and FINAL=1 on the tiny task (OVERRIDES, typed
     after the script's own fields): three stages, the held-out choice of the start, the
     averaged policy file whose card names the averaged snapshots, the chosen start and every
-    stage's command, and the final choice between the start and that file."""
+    stage's command, and the final choice between the start and that file. With POP=2 two
+    members train stages 1-2 side by side and the start is chosen among both."""
     out = tmp_path / "run"
     tiny = [*TINY_TRAIN, "algo.intent_rollouts=2", "algo.intent_depth=2"]
     # stage limits in updates: minute limits made fewer updates on a busy box (0.5 minutes
@@ -616,11 +619,19 @@ def test_train_2h_runs_its_stages_and_the_choices_end_to_end(tmp_path):
         capture_output=True, text=True, timeout=600,
         env={**os.environ, "SELECT": "1", "SELECT_BUDGETS": "5 2 4", "SELECT_EPISODES": "2 3 2",
              "FINAL": "1", "FINAL_EPISODES": "2", "OVERRIDES": " ".join(tiny),
-             "UPDATES": "1 2 10"})
+             "UPDATES": "1 2 10", "POP": pop})
     assert proc.returncode == 0, proc.stderr[-3000:]
     stamps = [line.split()[0] for line in (out / "wall.txt").read_text().splitlines()]
-    assert stamps == ["start", "stage1", "stage2", "selected", "final", "end"]
+    members = int(pop)
+    assert sorted(stamps[1:1 + 2 * members]) == ["stage1"] * members + ["stage2"] * members
+    assert stamps[:1] + stamps[1 + 2 * members:] == ["start", "selected", "final", "end"]
     choice = json.loads((out / "select.json").read_text())
+    runs = {str(Path(c["path"]).parent).removesuffix("/snapshots") for c in choice["candidates"]}
+    assert runs == {str(out / "stage2"), *[str(out / "m1" / "stage2")] * (members - 1)}
+    if members == 2:  # each member trained its own seed
+        seeds = {torch.load(out / d / "checkpoint.pt", weights_only=False)["config"]["seed"]
+                 for d in ("stage1", "m1/stage1")}
+        assert seeds == {3, 1003}
     assert choice["budget"] == [2.0, 4.0, 5.0] and choice["episodes"] == [3, 2, 2]  # per budget
     assert choice["heldout_set"] == 2  # a roadmap per held-out episode, as the protocol
     card = json.loads((out / "avg.json").read_text())
