@@ -36,9 +36,11 @@
 # With POP=2 (2026-11-29; needs SELECT=1), stages 1-2 train two members side by side,
 # one torch thread each (seeds SEED and SEED + 1000; the second in OUT_DIR/m1/), so each
 # makes about half the updates of one two-thread run, and the start choice looks at both:
-# each member's end and its snapshots of the last SELECT_WINDOW updates (default 6 with
-# POP=2: three per member), on B = 2 and 5 by default (SELECT_BUDGETS "2 5",
-# SELECT_EPISODES "96 48"; about as long as POP=1's choice). Why: the draws' spread between
+# each member's end and its snapshots of the last SELECT_WINDOW updates (default 3 with
+# POP=2: two per member), on B = 2 and 5 by default (SELECT_BUDGETS "2 5",
+# SELECT_EPISODES "96 48"), and stage 2 gets 39 minutes, not 42: the first POP=2 draw
+# (2026-11-29, window 6: six candidates) chose for 686 s and took 124 minutes in all, so
+# the defaults were cut to about 8 minutes of choice. Why: the draws' spread between
 # seeds is larger than any lever tried, no early training signal tells seeds apart, and
 # held-out episodes at the end of stage 2 rank them (docs/results.md, "All two-hour runs,
 # one table" and "No early signal in the curves").
@@ -64,7 +66,7 @@ POP=${POP:-1}
     || { echo "train_2h.sh: POP must be 1 or 2, got '$POP'" >&2; exit 2; }
 [[ $POP == 1 || $SELECT == 1 ]] \
     || { echo "train_2h.sh: POP=2 needs SELECT=1 (the choice between the members)" >&2; exit 2; }
-if [[ $POP == 2 ]]; then W=6 B="2 5" E="96 48"; else W=15 B=2 E=160; fi
+if [[ $POP == 2 ]]; then W=3 B="2 5" E="96 48"; else W=15 B=2 E=160; fi
 SELECT_WINDOW=${SELECT_WINDOW:-$W}
 SELECT_EPISODES=${SELECT_EPISODES:-$E}
 SELECT_BUDGETS=${SELECT_BUDGETS:-$B}
@@ -77,7 +79,7 @@ export HELDOUT_SET=${HELDOUT_SET:-2}  # final_choice.sh reads it too
     || { echo "train_2h.sh: FINAL must be 0 or 1, got '$FINAL'" >&2; exit 2; }
 [[ $HELDOUT_SET == 1 || $HELDOUT_SET == 2 ]] \
     || { echo "train_2h.sh: HELDOUT_SET must be 1 or 2, got '$HELDOUT_SET'" >&2; exit 2; }
-if [[ $SELECT == 1 ]]; then D2=42 D3=$((FINAL == 1 ? 26 : 28)); else D2=37 D3=36; fi
+if [[ $SELECT == 1 ]]; then D2=$((POP == 2 ? 39 : 42)) D3=$((FINAL == 1 ? 26 : 28)); else D2=37 D3=36; fi
 for n in "${SELECT_EPS[@]}" "${FINAL_EPISODES:-64}"; do  # not found out after two hours
     [[ $n =~ ^[0-9]+$ ]] && ((n >= 2)) \
         || { echo "train_2h.sh: SELECT_EPISODES and FINAL_EPISODES must be integers >= 2, got '$n'" >&2; exit 2; }
