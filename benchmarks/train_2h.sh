@@ -153,8 +153,9 @@ stages12() {
 # every draw's stage 2 reset its worlds from seed 0; typed, so that the documented draws
 # reproduce. POP=2's second member takes its own seed there too.
 RUNS2=("$OUT/stage2")
+SEED_M1=$((SEED + 1000))  # POP=2's second member
 if [[ $POP == 2 ]]; then
-    stages12 "$OUT/m1" "$((SEED + 1000))" "$((SEED + 1000))" 1 &
+    stages12 "$OUT/m1" "$SEED_M1" "$SEED_M1" 1 &
     M1PID=$!
     stages12 "$OUT" "$SEED" 0 1 || { kill "$M1PID" 2>/dev/null; exit 1; }
     wait "$M1PID" || { echo "train_2h.sh: the second member ($OUT/m1) failed" >&2; exit 1; }
@@ -171,8 +172,9 @@ if [[ $SELECT == 1 ]]; then
         --heldout-set "$HELDOUT_SET" \
         --out "$OUT/select.json" | tail -1)
     echo "selected $START $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
-    [[ $POP == 2 ]] && NOTE="two members side by side in stages 1-2 (seeds $SEED and $((SEED + 1000)), one thread each); "
-    NOTE="${NOTE/#fixed before the run/}fixed before the run; stage 3 started from $START, chosen on held-out episodes at B = $(printf '%s\n' "${SELECT_BS[@]}" | sort -g | paste -sd ' ') ($OUT/select.json); wall_s_with_init leaves out the updates of stage 2 after it and the minutes of the choice; the whole wall clock of the run is in $OUT/wall.txt"
+    POP_NOTE=""
+    [[ $POP == 2 ]] && POP_NOTE="two members side by side in stages 1-2 (seeds $SEED and $SEED_M1, one thread each); "
+    NOTE="${POP_NOTE}fixed before the run; stage 3 started from $START, chosen on held-out episodes at B = $(printf '%s\n' "${SELECT_BS[@]}" | sort -g | paste -sd ' ') ($OUT/select.json); wall_s_with_init leaves out the updates of stage 2 after it and the minutes of the choice; the whole wall clock of the run is in $OUT/wall.txt"
 fi
 $TRAIN init="$START" seed="$((SEED + 2))" algo.lr="$LR3" threads=2 \
     algo.intent_rollouts=8 algo.intent_depth=5 n_envs=16 algo.epochs=4 algo.target_kl=0.02 \
