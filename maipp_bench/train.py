@@ -714,6 +714,17 @@ def export_sources(export_from: Any, last: Path) -> list[Path]:
     return [kept[n] for n in sorted(kept) if span[0] <= n <= span[1]]
 
 
+def _card_machine(run_config: dict, cfg: Any) -> str:
+    """The machine line of a card: this CPU, with the torch threads and device the run's
+    last session trained with (threads and device are per invocation, so an export typed
+    with other ones does not describe the training)."""
+    threads = run_config.get("threads", torch.get_num_threads())
+    device = run_config.get("device", cfg.device)
+    gpu = (f" ({torch.cuda.get_device_name(device)})"
+           if "cuda" in device and torch.cuda.is_available() else "")
+    return f"{machine_name()}, {threads} torch thread(s), device {device}{gpu}"
+
+
 def write_card(cfg: Any, sources: list[Path], last: Path, out: Path) -> None:
     """The shipped policy file (weights of ``sources``: the best or the last checkpoint, a
     snapshot, or the average of several) and its JSON card: commands, seed, commit, wall
@@ -754,9 +765,7 @@ def write_card(cfg: Any, sources: list[Path], last: Path, out: Path) -> None:
         "selected_by": f"{how}, {cfg.export_note}" if cfg.export_note else how,
         "frames": run["frames"],
         "wall_s": run["wall_s"],
-        "machine": f"{machine_name()}, {torch.get_num_threads()} torch thread(s), "
-                   f"device {cfg.device}"
-        + (f" ({torch.cuda.get_device_name(cfg.device)})" if "cuda" in cfg.device else ""),
+        "machine": _card_machine(run["config"], cfg),
     }
     if snapshot:
         card |= {"run_continued_to": state["update"], "exported_with": _command(),

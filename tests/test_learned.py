@@ -1424,8 +1424,13 @@ def test_snapshots_keep_every_evaluated_update(tiny_checkpoint, tmp_path):
     import json
 
     out = tmp_path / "shipped" / "snap.pt"
-    train(compose_train(*TINY_TRAIN, f"resume={run / 'checkpoint.pt'}", "total_updates=0",
-                        f"export={out}", "export_from=2", "export_note=picked by hand"), run)
+    threads = torch.get_num_threads()
+    try:  # exported with two threads: the card still names the one the run trained with
+        train(compose_train(*TINY_TRAIN, f"resume={run / 'checkpoint.pt'}", "total_updates=0",
+                            f"export={out}", "export_from=2", "export_note=picked by hand",
+                            "threads=2"), run)
+    finally:
+        torch.set_num_threads(threads)
     core, payload = load_core(out)
     snap2, _ = load_core(snaps[0])
     assert all(torch.equal(t, snap2.state_dict()[n]) for n, t in core.state_dict().items())
@@ -1435,6 +1440,7 @@ def test_snapshots_keep_every_evaluated_update(tiny_checkpoint, tmp_path):
         1, 2]
     assert card["run_continued_to"] == 4 and "exported_with" in card  # (argv: pytest's here)
     assert card["selected_by"].endswith("update 2, picked by hand")
+    assert ", 1 torch thread(s), device cpu" in card["machine"]
     assert torch.load(run / "checkpoint.pt", weights_only=False)["update"] == 4  # untouched
     with pytest.raises(FileNotFoundError, match=r"updates \[2, 4\]"):
         train(compose_train(*TINY_TRAIN, f"resume={run / 'checkpoint.pt'}",
