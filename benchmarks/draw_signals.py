@@ -76,7 +76,8 @@ def curve(name: str) -> list[dict]:
 
 
 def outcomes() -> dict[int, dict]:
-    """Each draw's B = 2 score and B = 5 minus ``catnipp_ti`` from the docs' table."""
+    """Each draw's B = 2 score, B = 5 minus ``catnipp_ti``, recipe and "met" cells, from
+    the docs' table."""
     text = (ROOT / "docs" / "results.md").read_text()
     table = text[text.index("**All two-hour runs, one table.**"):]
     found = {}
@@ -84,7 +85,8 @@ def outcomes() -> dict[int, dict]:
         cells = [c.strip() for c in line.strip().strip("|").split("|")]
         if len(cells) == 11 and cells[0].isdigit():
             found[int(cells[0])] = {"B2": float(cells[3]),
-                                    "B5_minus_ti": float(cells[9].split("±")[0])}
+                                    "B5_minus_ti": float(cells[9].split("±")[0]),
+                                    "recipe": cells[1], "met": cells[10]}
         elif found and not line.startswith("|"):
             break
     return found

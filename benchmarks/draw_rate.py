@@ -1,0 +1,64 @@
+"""How often does a two-hour draw meet the ranking target, per recipe?
+
+Reads docs/results.md's table "All two-hour runs, one table" (the same rows as
+``draw_signals.py``) and counts, per recipe family, the draws that met the target in the
+means ("in the means" or "by a margin") and those that also stayed within two hours (not
+"over 2 h"), each with an exact (Clopper-Pearson) 95% interval for the rate: with a
+handful of draws per recipe, the interval says how little the count alone pins down.
+
+Families, from the table's recipe cell: ``POP=2`` (two seeds side by side, the better kept
+on held-out episodes), ``SELECT=1 FINAL=1``, ``SELECT=1`` and ``fixed`` (the first); "all"
+pools them.
+
+Usage:
+    python benchmarks/draw_rate.py [--level 0.95]
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from draw_signals import outcomes
+from scipy.stats import beta
+
+FAMILIES = ("POP=2", "SELECT=1 FINAL=1", "SELECT=1")  # tested in order; else "fixed"
+
+
+def family(recipe: str) -> str:
+    """The recipe family a table row belongs to."""
+    return next((f for f in FAMILIES if f"`{f}`" in recipe or f"`{f} " in recipe), "fixed")
+
+
+def clopper_pearson(k: int, n: int, level: float) -> tuple[float, float]:
+    """Exact two-sided interval for a binomial rate with ``k`` successes of ``n``."""
+    a = (1 - level) / 2
+    lo = 0.0 if k == 0 else float(beta.ppf(a, k, n - k + 1))
+    hi = 1.0 if k == n else float(beta.ppf(1 - a, k + 1, n - k))
+    return lo, hi
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--level", type=float, default=0.95)
+    args = parser.parse_args()
+    if not 0 < args.level < 1:
+        raise SystemExit(f"--level must be in (0, 1), got {args.level}")
+    draws = outcomes()
+    groups: dict[str, list[int]] = {}
+    for d, o in sorted(draws.items()):
+        groups.setdefault(family(o["recipe"]), []).append(d)
+    groups["all"] = sorted(draws)
+    print(f"{'family':18} {'draws':>5}  {'met':18}  {'met within 2 h':18}  draws met")
+    for name, ds in groups.items():
+        met = [d for d in ds if draws[d]["met"].startswith(("in the means", "by a margin"))]
+        timely = [d for d in met if "over 2 h" not in draws[d]["met"]]
+        cells = []
+        for k in (len(met), len(timely)):
+            lo, hi = clopper_pearson(k, len(ds), args.level)
+            cells.append(f"{k:2d} ({lo:4.0%} to {hi:4.0%})")
+        print(f"{name:18} {len(ds):5d}  {cells[0]:18}  {cells[1]:18}  "
+              f"{', '.join(map(str, met))}")
+    print(f"(exact {args.level:.0%} intervals for each rate)")
+
+if __name__ == "__main__":
+    main()
