@@ -5,6 +5,7 @@ Reads docs/results.md's table "All two-hour runs, one table" (the same rows as
 means ("in the means" or "by a margin") and those that also stayed within two hours (not
 "over 2 h"), each with an exact (Clopper-Pearson) 95% interval for the rate: with a
 handful of draws per recipe, the interval says how little the count alone pins down.
+Then how many of the draws that missed were behind ``catnipp_ti`` at B = 5 in the mean.
 
 Families, from the table's recipe cell: ``POP=2`` (two seeds side by side, the better kept
 on held-out episodes), ``SELECT=1 FINAL=1``, ``SELECT=1`` and ``fixed`` (the first); "all"
@@ -59,6 +60,11 @@ def main() -> None:
         print(f"{name:18} {len(ds):5d}  {cells[0]:18}  {cells[1]:18}  "
               f"{', '.join(map(str, met))}")
     print(f"(exact {args.level:.0%} intervals for each rate)")
+    missed = [d for d, o in draws.items()
+              if not o["met"].startswith(("in the means", "by a margin"))]
+    behind = [d for d in missed if draws[d]["B5_minus_ti"] > 0]
+    print(f"missed: {len(missed)}, of them behind catnipp_ti at B = 5 in the mean: "
+          f"{len(behind)} ({', '.join(map(str, sorted(behind)))})")
 
 if __name__ == "__main__":
     main()
