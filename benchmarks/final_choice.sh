@@ -35,15 +35,8 @@ START=$(python -c 'import json, sys; print(json.load(open(sys.argv[1])).get("ini
 [[ -f $START ]] || { echo "final_choice.sh: stage 3's start $START (as $OUT/avg.json records it) is not" \
     "there; run from the folder train_2h.sh ran in" >&2; exit 2; }
 # The start as a policy file with its card: a snapshot of stage 2, or its last update.
-if [[ $START =~ ^(.*)/snapshots/update_0*([0-9]+)\.pt$ ]]; then
-    RUN2=${BASH_REMATCH[1]} FROM=${BASH_REMATCH[2]}
-else
-    RUN2=$(dirname "$START") FROM=last
-fi
-EXPORT="python -m maipp_bench.train algo=ours total_updates=0 threads=2 progress=false"
-$EXPORT resume="$RUN2/checkpoint.pt" \
-    export="$OUT/start.pt" export_from="$FROM" hydra.run.dir="$OUT/export_start" \
-    "export_note='benchmarks/final_choice.sh: stage 3 of $OUT started from this network'"
+bash "$HERE/export_snapshot.sh" "$START" "$OUT/start.pt" "$OUT/export_start" \
+    "benchmarks/final_choice.sh: stage 3 of $OUT started from this network"
 CHOSEN=$(python "$HERE/select_snapshot.py" --candidates "$OUT/start.pt" "$OUT/avg.pt" \
     --method ours_ti --budget 4 5 --episodes "$EPISODES" --first "$FIRST" --workers 2 \
     --heldout-set "$HELDOUT_SET" \

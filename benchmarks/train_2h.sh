@@ -44,10 +44,15 @@
 # seeds is larger than any lever tried, no early training signal tells seeds apart, and
 # held-out episodes at the end of stage 2 rank them (docs/results.md, "All two-hour runs,
 # one table" and "No early signal in the curves").
-# Usage: [SELECT=1 [SELECT_BUDGETS="2 5" SELECT_EPISODES="160 64"]] [POP=2] [FINAL=1] [OVERRIDES="k=v ..."] [UPDATES="U1 U2 U3"] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
+# With STAGE3=0 (2026-12-02; needs SELECT=1, not FINAL=1) there is no stage 3: the final
+# choice kept stage 3's start in 8 of the 11 FINAL=1 draws, so its minutes (and the final
+# choice's) go to stage 2 instead (default 68 minutes with POP=2, 70 without), and the
+# start choice's pick, exported with its card, is the policy file OUT_DIR/final.pt.
+# Usage: [SELECT=1 [SELECT_BUDGETS="2 5" SELECT_EPISODES="160 64"]] [POP=2] [FINAL=1 | STAGE3=0] [OVERRIDES="k=v ..."] [UPDATES="U1 U2 U3"] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
 # UPDATES (smoke runs and tests; 2026-11-28) stops the stages after U1, U2 and U3 updates
 # instead of M1, M2 and M3 minutes, so that a busy machine makes the same run (stage 3
-# needs 5 updates for a snapshot to average).
+# needs 5 updates for a snapshot to average); with STAGE3=0 it is "U1 U2", and M3 and LR3
+# are not taken.
 # OVERRIDES are Hydra overrides typed after each stage's own fields, so they win (e.g.
 # algo.precision=bf16 on a CPU with native bf16, half float32's speed elsewhere; the tests'
 # tiny task: env=tiny n_envs=3 ...); none by default.
@@ -62,6 +67,13 @@ SEED=${2:-0}
 SELECT=${SELECT:-0}
 FINAL=${FINAL:-0}
 POP=${POP:-1}
+STAGE3=${STAGE3:-1}
+[[ $STAGE3 == 0 || $STAGE3 == 1 ]] \
+    || { echo "train_2h.sh: STAGE3 must be 0 or 1, got '$STAGE3'" >&2; exit 2; }
+[[ $STAGE3 == 1 || ($SELECT == 1 && $FINAL == 0) ]] \
+    || { echo "train_2h.sh: STAGE3=0 needs SELECT=1 (its choice is the policy) and no FINAL=1 (nothing to choose between)" >&2; exit 2; }
+[[ $STAGE3 == 1 || $# -le 4 ]] \
+    || { echo "train_2h.sh: STAGE3=0 trains no stage 3: M3 and LR3 are not taken" >&2; exit 2; }
 [[ $POP == 1 || $POP == 2 ]] \
     || { echo "train_2h.sh: POP must be 1 or 2, got '$POP'" >&2; exit 2; }
 [[ $POP == 1 || $SELECT == 1 ]] \
@@ -79,7 +91,9 @@ export HELDOUT_SET=${HELDOUT_SET:-2}  # final_choice.sh reads it too
     || { echo "train_2h.sh: FINAL must be 0 or 1, got '$FINAL'" >&2; exit 2; }
 [[ $HELDOUT_SET == 1 || $HELDOUT_SET == 2 ]] \
     || { echo "train_2h.sh: HELDOUT_SET must be 1 or 2, got '$HELDOUT_SET'" >&2; exit 2; }
-if [[ $SELECT == 1 ]]; then D2=$((POP == 2 ? 39 : 42)) D3=$((FINAL == 1 ? 26 : 28)); else D2=37 D3=36; fi
+if [[ $STAGE3 == 0 ]]; then D2=$((POP == 2 ? 68 : 70)) D3=1  # D3 unused
+elif [[ $SELECT == 1 ]]; then D2=$((POP == 2 ? 39 : 42)) D3=$((FINAL == 1 ? 26 : 28))
+else D2=37 D3=36; fi
 for n in "${SELECT_EPS[@]}" "${FINAL_EPISODES:-64}"; do  # not found out after two hours
     [[ $n =~ ^[0-9]+$ ]] && ((n >= 2)) \
         || { echo "train_2h.sh: SELECT_EPISODES and FINAL_EPISODES must be integers >= 2, got '$n'" >&2; exit 2; }
@@ -107,8 +121,13 @@ done
 M12=$(python -c "print($M1 + $M2)")  # stage 2 resumes: its limit counts stage 1's minutes
 if [[ -n ${UPDATES:-} ]]; then
     read -ra UPD <<< "$UPDATES"
-    ((${#UPD[@]} == 3)) && [[ ${UPD[0]} =~ ^[1-9][0-9]*$ && ${UPD[1]} =~ ^[1-9][0-9]*$ && ${UPD[2]} =~ ^[1-9][0-9]*$ ]] \
-        || { echo "train_2h.sh: UPDATES must be three positive integers (stages 1, 2 and 3), got '$UPDATES'" >&2; exit 2; }
+    if [[ $STAGE3 == 0 ]]; then N_UPD="two" WHICH="1 and 2"; else N_UPD="three" WHICH="1, 2 and 3"; fi
+    ((${#UPD[@]} == 2 + STAGE3)) || UPD=(bad)
+    for u in "${UPD[@]}"; do
+        [[ $u =~ ^[1-9][0-9]*$ ]] \
+            || { echo "train_2h.sh: UPDATES must be $N_UPD positive integers (stages $WHICH), got '$UPDATES'" >&2; exit 2; }
+    done
+    UPD+=(1)  # stage 3's limit, unused with STAGE3=0
     # stage 2 resumes: its limit counts stage 1's updates; stage 3 starts from init, at 0
     L1=(total_updates="${UPD[0]}" max_minutes=0)
     L2=(total_updates="$((UPD[0] + UPD[1]))" max_minutes=0)
@@ -174,7 +193,15 @@ if [[ $SELECT == 1 ]]; then
     echo "selected $START $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
     POP_NOTE=""
     [[ $POP == 2 ]] && POP_NOTE="two members side by side in stages 1-2 (seeds $SEED and $SEED_M1, one thread each); "
-    NOTE="${POP_NOTE}fixed before the run; stage 3 started from $START, chosen on held-out episodes at B = $(printf '%s\n' "${SELECT_BS[@]}" | sort -g | paste -sd ' ') ($OUT/select.json); wall_s_with_init leaves out the updates of stage 2 after it and the minutes of the choice; the whole wall clock of the run is in $OUT/wall.txt"
+    CHOSEN_BY="chosen on held-out episodes at B = $(printf '%s\n' "${SELECT_BS[@]}" | sort -g | paste -sd ' ') ($OUT/select.json)"
+    NOTE="${POP_NOTE}fixed before the run; stage 3 started from $START, $CHOSEN_BY; wall_s_with_init leaves out the updates of stage 2 after it and the minutes of the choice; the whole wall clock of the run is in $OUT/wall.txt"
+fi
+if [[ $STAGE3 == 0 ]]; then  # the start choice's pick is the policy file
+    bash "$HERE/export_snapshot.sh" "$START" "$OUT/final.pt" "$OUT/export" \
+        "benchmarks/train_2h.sh with STAGE3=0: ${POP_NOTE}fixed before the run; no stage 3, the policy is $START, $CHOSEN_BY; wall_s_with_init leaves out the updates of stage 2 after it and the minutes of the choice; the whole wall clock of the run is in $OUT/wall.txt"
+    echo "final $OUT/final.pt $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
+    echo "end $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
+    exit 0
 fi
 $TRAIN init="$START" seed="$((SEED + 2))" algo.lr="$LR3" threads=2 \
     algo.intent_rollouts=8 algo.intent_depth=5 n_envs=16 algo.epochs=4 algo.target_kl=0.02 \

@@ -574,12 +574,29 @@ def test_training_scripts_reject_bad_arguments_before_training(script, args, mes
     ("HELDOUT_SET", "3", "HELDOUT_SET must be 1 or 2, got '3'"),
     ("POP", "3", "POP must be 1 or 2, got '3'"), ("POP", "2", "POP=2 needs SELECT=1"),
     ("UPDATES", "1 2", "UPDATES must be three positive integers (stages 1, 2 and 3), got '1 2'"),
-    ("UPDATES", "1 0 5", "UPDATES must be three positive integers")])
+    ("UPDATES", "1 0 5", "UPDATES must be three positive integers"),
+    ("STAGE3", "2", "STAGE3 must be 0 or 1, got '2'"),
+    ("STAGE3", "0", "STAGE3=0 needs SELECT=1")])
 def test_train_2h_rejects_a_bad_switch_before_training(tmp_path, variable, value, message):
     out = tmp_path / "run"
     proc = subprocess.run(["bash", str(Path(__file__).parents[1] / "benchmarks" / "train_2h.sh"),
                            str(out)], capture_output=True, text=True, timeout=60,
                           env={**os.environ, variable: value})
+    assert proc.returncode == 2
+    assert message in proc.stderr
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(("env", "args", "message"), [
+    ({"FINAL": "1"}, [], "STAGE3=0 needs SELECT=1 (its choice is the policy) and no FINAL=1"),
+    ({}, ["1", "2", "3"], "STAGE3=0 trains no stage 3: M3 and LR3 are not taken"),
+    ({"UPDATES": "1 2 3"}, [], "UPDATES must be two positive integers (stages 1 and 2), got"),
+    ({"UPDATES": "1 x"}, [], "UPDATES must be two positive integers")])
+def test_train_2h_without_stage3_rejects_what_it_cannot_use(tmp_path, env, args, message):
+    out = tmp_path / "run"
+    proc = subprocess.run(["bash", str(Path(__file__).parents[1] / "benchmarks" / "train_2h.sh"),
+                           str(out), "0", *args], capture_output=True, text=True, timeout=60,
+                          env={**os.environ, "SELECT": "1", "STAGE3": "0", **env})
     assert proc.returncode == 2
     assert message in proc.stderr
     assert not out.exists()
@@ -657,6 +674,34 @@ def test_train_2h_runs_its_stages_and_the_choices_end_to_end(tmp_path, pop):
     assert "chosen on held-out episodes at B = 2 4 5 (" in card["selected_by"]
     start = json.loads((out / "start.json").read_text())
     assert start["selected_update"] == choice["chosen"]["update"]
+
+
+def test_train_2h_without_stage3_ships_the_start_choice(tmp_path):
+    """benchmarks/train_2h.sh with STAGE3=0 (and POP=2): stages 1-2 of both members, the
+    held-out choice among their last snapshots, and that choice exported with its card as
+    the policy file final.pt; no stage 3, no average, no second choice."""
+    out = tmp_path / "run"
+    tiny = [*TINY_TRAIN, "algo.intent_rollouts=2", "algo.intent_depth=2"]
+    proc = subprocess.run(
+        ["bash", str(Path(__file__).parents[1] / "benchmarks" / "train_2h.sh"), str(out), "3"],
+        capture_output=True, text=True, timeout=600,
+        env={**os.environ, "SELECT": "1", "STAGE3": "0", "POP": "2", "SELECT_EPISODES": "2",
+             "OVERRIDES": " ".join(tiny), "UPDATES": "1 2"})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    stamps = [line.split()[0] for line in (out / "wall.txt").read_text().splitlines()]
+    assert sorted(stamps[1:5]) == ["stage1", "stage1", "stage2", "stage2"]
+    assert stamps[:1] + stamps[5:] == ["start", "selected", "final", "end"]
+    assert not (out / "stage3").exists() and not (out / "avg.pt").exists()
+    choice = json.loads((out / "select.json").read_text())
+    assert choice["budget"] == [2.0, 5.0]  # POP=2's default budgets
+    chosen = Path(choice["chosen"]["path"])
+    card = json.loads((out / "final.json").read_text())
+    assert card["selected_update"] == choice["chosen"]["update"]
+    assert "STAGE3=0" in card["selected_by"] and str(chosen) in card["selected_by"]
+    theirs = torch.load(chosen, weights_only=False)["core"]
+    ours = torch.load(out / "final.pt", weights_only=False)["core"]
+    assert theirs.keys() == ours.keys()
+    assert all(torch.equal(ours[k], theirs[k]) for k in theirs)
 
 
 def test_final_choice_refuses_a_run_it_cannot_read(tmp_path):
