@@ -7,9 +7,10 @@ means ("in the means" or "by a margin") and those that also stayed within two ho
 handful of draws per recipe, the interval says how little the count alone pins down.
 Then how many of the draws that missed were behind ``catnipp_ti`` at B = 5 in the mean.
 
-Families, from the table's recipe cell: ``POP=2`` (two seeds side by side, the better kept
-on held-out episodes), ``SELECT=1 FINAL=1``, ``SELECT=1`` and ``fixed`` (the first); "all"
-pools them.
+Families, from the switches in the table's recipe cell (its first code span): ``STAGE3=0``
+(no stage 3: its minutes go to stage 2), ``POP=2`` (two seeds side by side, the better kept
+on held-out episodes), ``SELECT=1 FINAL=1``, ``SELECT=1`` and ``fixed`` (no switches, the
+first draws); "all" pools them.
 
 Usage:
     python benchmarks/draw_rate.py [--level 0.95]
@@ -18,16 +19,20 @@ Usage:
 from __future__ import annotations
 
 import argparse
+import re
 
 from draw_signals import outcomes
 from scipy.stats import beta
 
-FAMILIES = ("POP=2", "SELECT=1 FINAL=1", "SELECT=1")  # tested in order; else "fixed"
+FAMILIES = ("STAGE3=0", "POP=2", "SELECT=1 FINAL=1", "SELECT=1")  # tested in order
 
 
 def family(recipe: str) -> str:
-    """The recipe family a table row belongs to."""
-    return next((f for f in FAMILIES if f"`{f}`" in recipe or f"`{f} " in recipe), "fixed")
+    """The first family whose switches all appear in the recipe cell's first code span;
+    "fixed" when none does."""
+    span = re.search(r"`([^`]*)`", recipe)
+    switches = set(span.group(1).split()) if span else set()
+    return next((f for f in FAMILIES if set(f.split()) <= switches), "fixed")
 
 
 def clopper_pearson(k: int, n: int, level: float) -> tuple[float, float]:
