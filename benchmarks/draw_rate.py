@@ -5,7 +5,9 @@ Reads docs/results.md's table "All two-hour runs, one table" (the same rows as
 means ("in the means" or "by a margin") and those that also stayed within two hours (not
 "over 2 h"), each with an exact (Clopper-Pearson) 95% interval for the rate: with a
 handful of draws per recipe, the interval says how little the count alone pins down.
-Then how many of the draws that missed were behind ``catnipp_ti`` at B = 5 in the mean.
+Then how many of the draws that missed were behind ``catnipp_ti`` at B = 5 in the mean,
+which draw has the lowest B = 2, and how often the ``FINAL=1`` draws' final choice kept
+stage 3's start over its average (the cells' "(start kept)" / "(average kept)").
 
 Families, from the switches in the table's recipe cell (its first code span): ``STAGE3=0``
 (no stage 3: its minutes go to stage 2), ``POP=2`` (two seeds side by side, the better kept
@@ -70,6 +72,17 @@ def main() -> None:
     behind = [d for d in missed if draws[d]["B5_minus_ti"] > 0]
     print(f"missed: {len(missed)}, of them behind catnipp_ti at B = 5 in the mean: "
           f"{len(behind)} ({', '.join(map(str, sorted(behind)))})")
+    best = min(draws, key=lambda d: draws[d]["B2"])
+    print(f"lowest B = 2: {draws[best]['B2']} (draw {best})")
+    final = [d for d in draws if "FINAL=1" in draws[d]["recipe"]]
+    kept = {which: [d for d in final if f"({which} kept" in draws[d]["recipe"]]
+            for which in ("start", "average")}
+    if len(kept["start"]) + len(kept["average"]) != len(final):
+        raise SystemExit(f"FINAL=1 draws without a '(start kept)' / '(average kept)' cell: "
+                         f"{sorted(set(final) - set(kept['start']) - set(kept['average']))}")
+    print(f"FINAL=1 draws: {len(final)}, the final choice kept stage 3's start in "
+          f"{len(kept['start'])} ({', '.join(map(str, kept['start']))}), its average in "
+          f"{len(kept['average'])} ({', '.join(map(str, kept['average']))})")
 
 if __name__ == "__main__":
     main()

@@ -45,9 +45,10 @@
 # held-out episodes at the end of stage 2 rank them (docs/results.md, "All two-hour runs,
 # one table" and "No early signal in the curves").
 # With STAGE3=0 (2026-12-02; needs SELECT=1, not FINAL=1) there is no stage 3: the final
-# choice kept stage 3's start in 8 of the 11 FINAL=1 draws, so its minutes (and the final
-# choice's) go to stage 2 instead (default 68 minutes with POP=2, 70 without), and the
-# start choice's pick, exported with its card, is the policy file OUT_DIR/final.pt.
+# choice kept stage 3's start in 8 of the 11 FINAL=1 draws (benchmarks/draw_rate.py), so
+# its minutes (and the final choice's) go to stage 2 instead (default 68 minutes with
+# POP=2, 70 without), and the start choice's pick, exported with its card, is the policy
+# file OUT_DIR/final.pt.
 # Usage: [SELECT=1 [SELECT_BUDGETS="2 5" SELECT_EPISODES="160 64"]] [POP=2] [FINAL=1 | STAGE3=0] [OVERRIDES="k=v ..."] [UPDATES="U1 U2 U3"] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
 # UPDATES (smoke runs and tests; 2026-11-28) stops the stages after U1, U2 and U3 updates
 # instead of M1, M2 and M3 minutes, so that a busy machine makes the same run (stage 3
@@ -91,7 +92,7 @@ export HELDOUT_SET=${HELDOUT_SET:-2}  # final_choice.sh reads it too
     || { echo "train_2h.sh: FINAL must be 0 or 1, got '$FINAL'" >&2; exit 2; }
 [[ $HELDOUT_SET == 1 || $HELDOUT_SET == 2 ]] \
     || { echo "train_2h.sh: HELDOUT_SET must be 1 or 2, got '$HELDOUT_SET'" >&2; exit 2; }
-if [[ $STAGE3 == 0 ]]; then D2=$((POP == 2 ? 68 : 70)) D3=1  # D3 unused
+if [[ $STAGE3 == 0 ]]; then D2=$((POP == 2 ? 68 : 70)) D3=""
 elif [[ $SELECT == 1 ]]; then D2=$((POP == 2 ? 39 : 42)) D3=$((FINAL == 1 ? 26 : 28))
 else D2=37 D3=36; fi
 for n in "${SELECT_EPS[@]}" "${FINAL_EPISODES:-64}"; do  # not found out after two hours
@@ -114,7 +115,9 @@ LR3=${6:-3e-5}
 [[ $LR3 =~ ^[0-9]+([.][0-9]+)?(e-?[0-9]+)?$ ]] \
     && python -c "import sys; sys.exit(float(sys.argv[1]) <= 0)" "$LR3" \
     || { echo "train_2h.sh: LR3 must be a positive number, got '$LR3'" >&2; exit 2; }
-for m in "$M1" "$M2" "$M3"; do  # minutes may be fractional (a short smoke run)
+MINUTES=("$M1" "$M2")
+[[ $STAGE3 == 1 ]] && MINUTES+=("$M3")
+for m in "${MINUTES[@]}"; do  # minutes may be fractional (a short smoke run)
     [[ $m =~ ^[0-9]+([.][0-9]+)?$ ]] && [[ ! $m =~ ^0+([.]0+)?$ ]] \
         || { echo "train_2h.sh: stage minutes must be positive numbers, got '$m'" >&2; exit 2; }
 done
@@ -122,20 +125,18 @@ M12=$(python -c "print($M1 + $M2)")  # stage 2 resumes: its limit counts stage 1
 if [[ -n ${UPDATES:-} ]]; then
     read -ra UPD <<< "$UPDATES"
     if [[ $STAGE3 == 0 ]]; then N_UPD="two" WHICH="1 and 2"; else N_UPD="three" WHICH="1, 2 and 3"; fi
-    ((${#UPD[@]} == 2 + STAGE3)) || UPD=(bad)
-    for u in "${UPD[@]}"; do
-        [[ $u =~ ^[1-9][0-9]*$ ]] \
-            || { echo "train_2h.sh: UPDATES must be $N_UPD positive integers (stages $WHICH), got '$UPDATES'" >&2; exit 2; }
-    done
-    UPD+=(1)  # stage 3's limit, unused with STAGE3=0
+    OK=1
+    ((${#UPD[@]} == 2 + STAGE3)) || OK=0
+    for u in "${UPD[@]}"; do [[ $u =~ ^[1-9][0-9]*$ ]] || OK=0; done
+    ((OK)) || { echo "train_2h.sh: UPDATES must be $N_UPD positive integers (stages $WHICH), got '$UPDATES'" >&2; exit 2; }
     # stage 2 resumes: its limit counts stage 1's updates; stage 3 starts from init, at 0
     L1=(total_updates="${UPD[0]}" max_minutes=0)
     L2=(total_updates="$((UPD[0] + UPD[1]))" max_minutes=0)
-    L3=(total_updates="${UPD[2]}" max_minutes=0)
+    [[ $STAGE3 == 1 ]] && L3=(total_updates="${UPD[2]}" max_minutes=0)
 else
     L1=(total_updates=100000 max_minutes="$M1")
     L2=(total_updates=100000 max_minutes="$M12")
-    L3=(total_updates=100000 max_minutes="$M3")
+    [[ $STAGE3 == 1 ]] && L3=(total_updates=100000 max_minutes="$M3")
 fi
 HERE=$(dirname "$0")
 # The choices and the export run benchmarks/*.py, whose imports find maipp_bench through its
@@ -184,7 +185,8 @@ else
 fi
 
 START="$OUT/stage2/checkpoint.pt"
-NOTE="fixed before the run"
+RUN_NOTE="fixed before the run"
+NOTE=$RUN_NOTE
 if [[ $SELECT == 1 ]]; then
     START=$(python "$HERE/select_snapshot.py" --run "${RUNS2[@]}" --window "$SELECT_WINDOW" \
         --method ours_ti --budget "${SELECT_BS[@]}" --episodes "${SELECT_EPS[@]}" --workers 2 \
@@ -193,28 +195,29 @@ if [[ $SELECT == 1 ]]; then
     echo "selected $START $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
     POP_NOTE=""
     [[ $POP == 2 ]] && POP_NOTE="two members side by side in stages 1-2 (seeds $SEED and $SEED_M1, one thread each); "
+    RUN_NOTE="${POP_NOTE}fixed before the run"
     CHOSEN_BY="chosen on held-out episodes at B = $(printf '%s\n' "${SELECT_BS[@]}" | sort -g | paste -sd ' ') ($OUT/select.json)"
-    NOTE="${POP_NOTE}fixed before the run; stage 3 started from $START, $CHOSEN_BY; wall_s_with_init leaves out the updates of stage 2 after it and the minutes of the choice; the whole wall clock of the run is in $OUT/wall.txt"
+    WALL_NOTE="wall_s_with_init leaves out the updates of stage 2 after it and the minutes of the choice; the whole wall clock of the run is in $OUT/wall.txt"
+    NOTE="$RUN_NOTE; stage 3 started from $START, $CHOSEN_BY; $WALL_NOTE"
 fi
 if [[ $STAGE3 == 0 ]]; then  # the start choice's pick is the policy file
     bash "$HERE/export_snapshot.sh" "$START" "$OUT/final.pt" "$OUT/export" \
-        "benchmarks/train_2h.sh with STAGE3=0: ${POP_NOTE}fixed before the run; no stage 3, the policy is $START, $CHOSEN_BY; wall_s_with_init leaves out the updates of stage 2 after it and the minutes of the choice; the whole wall clock of the run is in $OUT/wall.txt"
+        "benchmarks/train_2h.sh with STAGE3=0: $RUN_NOTE; no stage 3, the policy is $START, $CHOSEN_BY; $WALL_NOTE"
     echo "final $OUT/final.pt $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
-    echo "end $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
-    exit 0
-fi
-$TRAIN init="$START" seed="$((SEED + 2))" algo.lr="$LR3" threads=2 \
-    algo.intent_rollouts=8 algo.intent_depth=5 n_envs=16 algo.epochs=4 algo.target_kl=0.02 \
-    "${L3[@]}" eval_every=0 keep_snapshots=true snapshot_every=5 \
-    hydra.run.dir="$OUT/stage3" "${EXTRA[@]}"
-LAST=$( (ls "$OUT/stage3/snapshots" 2>/dev/null || true) | sed -n 's/update_0*\([0-9]*\)\.pt/\1/p' | sort -n | tail -1)
-[[ -n $LAST ]] || { echo "train_2h.sh: stage 3 made fewer than 5 updates (a snapshot every 5): nothing to average; give it more minutes (M3) or updates (UPDATES)" >&2; exit 1; }
-python -m maipp_bench.train algo=ours resume="$OUT/stage3/checkpoint.pt" total_updates=0 \
-    threads=2 progress=false export="$OUT/avg.pt" export_from="5-$LAST" \
-    hydra.run.dir="$OUT/export" \
-    "export_note='benchmarks/train_2h.sh: the uniform average of every snapshot of stage 3 (updates 5-$LAST), $NOTE'"
-if [[ $FINAL == 1 ]]; then  # on held-out worlds after those SELECT=1 chose the start on
-    FIRST=$(printf '%s\n' "${SELECT_EPS[@]}" | sort -n | tail -1)
-    FINAL_FIRST=${FINAL_FIRST:-$FIRST} bash "$HERE/final_choice.sh" "$OUT"
+else
+    $TRAIN init="$START" seed="$((SEED + 2))" algo.lr="$LR3" threads=2 \
+        algo.intent_rollouts=8 algo.intent_depth=5 n_envs=16 algo.epochs=4 algo.target_kl=0.02 \
+        "${L3[@]}" eval_every=0 keep_snapshots=true snapshot_every=5 \
+        hydra.run.dir="$OUT/stage3" "${EXTRA[@]}"
+    LAST=$( (ls "$OUT/stage3/snapshots" 2>/dev/null || true) | sed -n 's/update_0*\([0-9]*\)\.pt/\1/p' | sort -n | tail -1)
+    [[ -n $LAST ]] || { echo "train_2h.sh: stage 3 made fewer than 5 updates (a snapshot every 5): nothing to average; give it more minutes (M3) or updates (UPDATES)" >&2; exit 1; }
+    python -m maipp_bench.train algo=ours resume="$OUT/stage3/checkpoint.pt" total_updates=0 \
+        threads=2 progress=false export="$OUT/avg.pt" export_from="5-$LAST" \
+        hydra.run.dir="$OUT/export" \
+        "export_note='benchmarks/train_2h.sh: the uniform average of every snapshot of stage 3 (updates 5-$LAST), $NOTE'"
+    if [[ $FINAL == 1 ]]; then  # on held-out worlds after those SELECT=1 chose the start on
+        FIRST=$(printf '%s\n' "${SELECT_EPS[@]}" | sort -n | tail -1)
+        FINAL_FIRST=${FINAL_FIRST:-$FIRST} bash "$HERE/final_choice.sh" "$OUT"
+    fi
 fi
 echo "end $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
