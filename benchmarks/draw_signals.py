@@ -53,9 +53,9 @@ DRAWS = {
     20: "seed17_bf16_final_h2",
 }
 # Draws of another shape, left out: their early curves are not one run's at one pace.
-# 21-26: POP=2, two members side by side in stages 1-2, one thread each (half the updates);
-# 26 with no stage 3 either (STAGE3=0).
-LEFT_OUT = {21, 22, 23, 24, 25, 26}
+# 21-27: POP=2, two members side by side in stages 1-2, one thread each (half the updates);
+# 26-27 with no stage 3 either (STAGE3=0).
+LEFT_OUT = {21, 22, 23, 24, 25, 26, 27}
 STAGE1_FRAMES = 1280  # 8 envs x 160 steps per stage-1 update; 16 envs after
 
 
