@@ -21,9 +21,8 @@ Usage:
 from __future__ import annotations
 
 import argparse
-import re
 
-from draw_signals import outcomes
+from draw_signals import outcomes, switches
 from scipy.stats import beta
 
 FAMILIES = ("STAGE3=0", "POP=2", "SELECT=1 FINAL=1", "SELECT=1")  # tested in order
@@ -32,9 +31,7 @@ FAMILIES = ("STAGE3=0", "POP=2", "SELECT=1 FINAL=1", "SELECT=1")  # tested in or
 def family(recipe: str) -> str:
     """The first family whose switches all appear in the recipe cell's first code span;
     "fixed" when none does."""
-    span = re.search(r"`([^`]*)`", recipe)
-    switches = set(span.group(1).split()) if span else set()
-    return next((f for f in FAMILIES if set(f.split()) <= switches), "fixed")
+    return next((f for f in FAMILIES if set(f.split()) <= switches(recipe)), "fixed")
 
 
 def clopper_pearson(k: int, n: int, level: float) -> tuple[float, float]:

@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -52,10 +53,10 @@ DRAWS = {
     19: "seed16_bf16_final_h2",
     20: "seed17_bf16_final_h2",
 }
-# Draws of another shape, left out: their early curves are not one run's at one pace.
-# 21-27: POP=2, two members side by side in stages 1-2, one thread each (half the updates);
-# 26-27 with no stage 3 either (STAGE3=0).
-LEFT_OUT = {21, 22, 23, 24, 25, 26, 27}
+# Draws of another shape are left out, read from the table's recipe cell: POP=2 trains two
+# members side by side in stages 1-2, one thread each (half the updates), so their early
+# curves are not one run's at one pace.
+LEFT_OUT_SWITCH = "POP=2"
 STAGE1_FRAMES = 1280  # 8 envs x 160 steps per stage-1 update; 16 envs after
 
 
@@ -91,6 +92,12 @@ def outcomes() -> dict[int, dict]:
         elif found and not line.startswith("|"):
             break
     return found
+
+
+def switches(recipe: str) -> set[str]:
+    """The switches of a recipe cell: the words of its first code span (none: "fixed")."""
+    span = re.search(r"`([^`]*)`", recipe)
+    return set(span.group(1).split()) if span else set()
 
 
 def window_mean(rows: list[dict], key: str) -> float:
@@ -152,7 +159,7 @@ def main() -> None:
     parser.add_argument("--permutations", type=int, default=5000)
     parser.add_argument("--out", type=Path, help="write every correlation as JSON")
     args = parser.parse_args()
-    outs = {d: o for d, o in outcomes().items() if d not in LEFT_OUT}
+    outs = {d: o for d, o in outcomes().items() if LEFT_OUT_SWITCH not in switches(o["recipe"])}
     if sorted(outs) != sorted(DRAWS):
         raise SystemExit(f"docs table draws {sorted(outs)} != mapped draws {sorted(DRAWS)}")
     feats = {d: features(d) for d in DRAWS}
