@@ -13,9 +13,17 @@ def polyline_lengths(points: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 
 def points_at(points: torch.Tensor, cum: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
-    """Points at arc lengths ``dist [..., R]`` along polylines ``points [..., D, 2]``."""
+    """Points at arc lengths ``dist [..., R]`` along polylines ``points [..., D, 2]``.
+
+    ``cum`` is :func:`polyline_lengths`: padding vertices after the last real one repeat its
+    length. A distance at (or past) the end lands on the last real vertex, not on padding:
+    whether a measurement sits exactly at a branch's end or a few ulps short of it must not
+    move it to wherever the padding lies (the root, for RRT branches).
+    """
     d = points.shape[-2]
-    seg = torch.searchsorted(cum.contiguous(), dist.contiguous(), right=True).clamp(1, d - 1) - 1
+    last = (cum < cum[..., -1:]).sum(-1, keepdim=True)  # index of the last real vertex
+    idx = torch.searchsorted(cum.contiguous(), dist.contiguous(), right=True)
+    seg = torch.minimum(idx, last).clamp(1, d - 1) - 1
     start = cum.gather(-1, seg)
     length = cum.gather(-1, seg + 1) - start
     a = points.gather(-2, seg.unsqueeze(-1).expand(*seg.shape, 2))

@@ -38,7 +38,9 @@ _KEPT_VERTICES = 32  # vertices of a best path kept for the next plan (RRT step 
 class SGARRTPolicy(PlannerPolicy):
     """SGA over agents of RRT-sampled paths of length in [min_length, max_length]."""
 
-    version = 2  # 2: the last best path's remainder seeds the next tree (reuse_plan)
+    # 2: the last best path's remainder seeds the next tree (reuse_plan). 3: a measurement
+    # at a branch's end lands there, not on the padding (the root): paths.points_at.
+    version = 3
 
     def __init__(
         self,
