@@ -1,0 +1,122 @@
+"""Do `sga_rrt`'s episodes turn on the last bits of its trees? (docs/protocol.md, "Where
+the `sga_rrt` episodes turn").
+
+Plays a setting's first-trial episodes twice: as the method runs, and with every RRT
+grown from a root (and kept path) moved by one unit in the last place, which moves every
+tree node by a few ulps and leaves the tree's shape alone. An episode that differs
+between the two turned on last bits, as it would between two CPUs that round one
+operation differently. ``--pre-v3`` plays both with the rule `sga_rrt` v2 had for a
+measurement at a branch's end (clamped onto the last padding vertex, the root, when the
+branch had two or more), to show what v3 changed; ``--moved`` counts the real
+measurement points that the v2 rule would put elsewhere.
+
+Patches live in this process only (a diagnostic: the method and its fingerprint are
+unchanged).
+
+Usage:
+    python benchmarks/sga_end_points.py --method sga_rrt_0.9_1.0 --setting budget=2.0 --episodes 30
+    python benchmarks/sga_end_points.py --method sga_rrt_0.3_0.4 --setting budget=2.0 \\
+        --episodes 30 --pre-v3 --moved
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+
+import torch
+
+import maipp_bench.algos.paths as paths
+import maipp_bench.algos.sga_rrt as sga
+from maipp_bench import algos
+from maipp_bench.protocol.protocol import load_protocol
+from maipp_bench.protocol.runner import run_chunk
+
+_V3_POINTS_AT = paths.points_at
+
+
+def v2_points_at(points: torch.Tensor, cum: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
+    """`paths.points_at` as `sga_rrt` v2 had it: no cap at the last real vertex."""
+    d = points.shape[-2]
+    seg = torch.searchsorted(cum.contiguous(), dist.contiguous(), right=True).clamp(1, d - 1) - 1
+    start = cum.gather(-1, seg)
+    length = cum.gather(-1, seg + 1) - start
+    a = points.gather(-2, seg.unsqueeze(-1).expand(*seg.shape, 2))
+    b = points.gather(-2, (seg + 1).unsqueeze(-1).expand(*seg.shape, 2))
+    frac = ((dist - start) / torch.where(length > 0, length, 1.0)).clamp(0, 1)
+    return a + (b - a) * frac.unsqueeze(-1)
+
+
+@contextlib.contextmanager
+def patched(rule_v2: bool, nudge: bool, moved: list[int]):
+    """The v2 end-point rule and/or one-ulp roots for every tree grown inside; ``moved``
+    collects how many real measurement points the two rules place differently."""
+    grow, measure = sga.SGARRTPolicy._grow, sga.measurement_points
+
+    def grow_nudged(self, root, key, chain=None, chain_mask=None):
+        up = torch.tensor(float("inf"), dtype=root.dtype)
+        root = torch.nextafter(root, up)
+        if chain is not None:
+            chain = torch.nextafter(chain, up)
+        return grow(self, root, key, chain, chain_mask)
+
+    def measure_counted(points, mask, since, spacing, max_points):
+        pts, valid = measure(points, mask, since, spacing, max_points)
+        paths.points_at = v2_points_at
+        try:
+            old, _ = measure(points, mask, since, spacing, max_points)
+        finally:
+            paths.points_at = _V3_POINTS_AT
+        moved[0] += int(((pts != old).any(-1) & valid).sum())
+        return (old, valid) if rule_v2 else (pts, valid)
+
+    sga.measurement_points = measure_counted
+    if nudge:
+        sga.SGARRTPolicy._grow = grow_nudged
+    try:
+        yield
+    finally:
+        sga.SGARRTPolicy._grow, sga.measurement_points = grow, measure
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--suite", default="risk_aware")
+    p.add_argument("--method", required=True, help="an sga_rrt_<a>_<b> method")
+    p.add_argument("--setting", required=True, help="a setting key of the suite")
+    p.add_argument("--episodes", type=int, default=30, help="the suite's first N instances")
+    p.add_argument("--pre-v3", action="store_true", help="play with v2's end-point rule")
+    p.add_argument("--moved", action="store_true",
+                   help="count real measurement points the v2 rule places elsewhere")
+    args = p.parse_args()
+    if not args.method.startswith("sga_rrt"):
+        p.error(f"--method must be an sga_rrt method, got {args.method!r}")
+    suite = load_protocol(1).suite(args.suite)
+    setting = next((s for s in suite.settings if s.key == args.setting), None)
+    if setting is None:
+        p.error(f"--setting {args.setting!r} is not a setting of {args.suite}")
+    spec = algos.get_method(args.method)
+    seeds = list(suite.instance_seeds[: args.episodes])
+    torch.set_num_threads(1)
+    rule = "v2 (pre-v3)" if args.pre_v3 else "v3"
+    played = {}
+    for nudge in (False, True):
+        moved = [0]
+        with torch.inference_mode(), patched(args.pre_v3, nudge, moved):
+            played[nudge] = run_chunk(spec, suite.env_config(setting), seeds,
+                                      suite.trial_seeds[0])
+        if args.moved:
+            print(f"{'one-ulp roots' if nudge else 'as run'}: {moved[0]} real measurement "
+                  "points the v2 rule places elsewhere")
+    differ = [(a["instance"], a["trace"], b["trace"])
+              for a, b in zip(played[False], played[True]) if a["trace"] != b["trace"]]
+    mean = [sum(r["trace"] for r in played[n]) / len(seeds) for n in (False, True)]
+    print(f"{args.suite} {args.method} {args.setting}, first trial, {len(seeds)} episodes, "
+          f"end-point rule {rule}: {len(differ)} differ with one-ulp roots "
+          f"(mean Tr(P_f) {mean[0]:.4f} as run, {mean[1]:.4f} nudged)")
+    for inst, a, b in differ:
+        print(f"  instance {inst:>7}  {a:.4f}  nudged {b:.4f}")
+
+
+if __name__ == "__main__":
+    main()
