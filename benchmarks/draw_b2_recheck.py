@@ -1,0 +1,71 @@
+"""The two-hour draws' B = 2 column against a recomputed `sga_rrt_0.3_0.4` row.
+
+docs/results.md's table "All two-hour runs, one table" gives each draw's B = 2 mean minus
+the board's `sga_rrt_0.3_0.4` B = 2 mean, ± the unpaired standard error, as the board was
+when the draw was scored. When that row is recomputed (`sga_rrt` v3, docs/protocol.md),
+each entry moves by the change of the row's mean, and its error by the change of the
+row's share of it: se_new² = se_old² - s_old²/n_old + s_new²/n_new (the draw's own share
+is unchanged). Prints every draw's entry before and after, and whether it still leads
+(negative: ahead) and by more than two standard errors.
+
+Usage:
+    python benchmarks/draw_b2_recheck.py --before 3358ddd            # against the working tree
+    python benchmarks/draw_b2_recheck.py --before 3358ddd --after 83fd56b
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+import boards
+from draw_signals import ROOT
+
+METHOD, SETTING = "sga_rrt_0.3_0.4", "budget=2.0"
+
+
+def b2_column() -> dict[int, tuple[float, float]]:
+    """Each draw's "B = 2 minus `sga_rrt_0.3_0.4`" cell: (difference, standard error)."""
+    text = (ROOT / "docs" / "results.md").read_text()
+    table = text[text.index("**All two-hour runs, one table.**"):]
+    found = {}
+    for line in table.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == 11 and cells[0].isdigit():
+            diff, se = (float(x) for x in cells[7].split("±"))
+            found[int(cells[0])] = (diff, se)
+        elif found and not line.startswith("|"):
+            break
+    return found
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--before", required=True, help="git revision of the board the draws used")
+    p.add_argument("--after", help="git revision of the recomputed board (default: the tree)")
+    args = p.parse_args()
+    old = boards.keyed(boards.at_revision("risk_aware", args.before))[(METHOD, SETTING)]
+    new_board = (boards.at_revision("risk_aware", args.after) if args.after
+                 else boards.load("risk_aware"))
+    new = boards.keyed(new_board)[(METHOD, SETTING)]
+    shift = old["trace_mean"] - new["trace_mean"]
+    print(f"{METHOD} {SETTING}: {old['trace_mean']:.3f} ± {old['trace_std']:.2f} -> "
+          f"{new['trace_mean']:.3f} ± {new['trace_std']:.2f}; every entry moves by "
+          f"{shift:+.2f}")
+    flips = []
+    for draw, (diff, se) in sorted(b2_column().items()):
+        var = se**2 - old["trace_std"] ** 2 / old["n"] + new["trace_std"] ** 2 / new["n"]
+        d2, se2 = diff + shift, math.sqrt(max(var, 0.0))
+        lead = "ahead" if d2 < 0 else "behind"
+        margin = " (by 2 se)" if abs(d2) > 2 * se2 else ""
+        was = ("ahead" if diff < 0 else "behind") + (" (by 2 se)" if abs(diff) > 2 * se else "")
+        mark = "" if was == lead + margin else f"   was {was}"
+        if mark:
+            flips.append(draw)
+        print(f"  draw {draw:>2}: {diff:+6.1f} ± {se:.1f} -> {d2:+6.1f} ± {se2:.1f}  "
+              f"{lead}{margin}{mark}")
+    print(f"entries whose standing changed: {flips or 'none'}")
+
+
+if __name__ == "__main__":
+    main()
