@@ -19,24 +19,15 @@ import argparse
 import math
 
 import boards
-from draw_signals import ROOT
+from draw_signals import table_rows
 
 METHOD, SETTING = "sga_rrt_0.3_0.4", "budget=2.0"
 
 
 def b2_column() -> dict[int, tuple[float, float]]:
     """Each draw's "B = 2 minus `sga_rrt_0.3_0.4`" cell: (difference, standard error)."""
-    text = (ROOT / "docs" / "results.md").read_text()
-    table = text[text.index("**All two-hour runs, one table.**"):]
-    found = {}
-    for line in table.splitlines():
-        cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if len(cells) == 11 and cells[0].isdigit():
-            diff, se = (float(x) for x in cells[7].split("±"))
-            found[int(cells[0])] = (diff, se)
-        elif found and not line.startswith("|"):
-            break
-    return found
+    return {draw: tuple(float(x) for x in cells[7].split("±"))
+            for draw, cells in table_rows().items()}
 
 
 def main() -> None:

@@ -77,21 +77,26 @@ def curve(name: str) -> list[dict]:
     return json.loads(path.read_text())["curve"]
 
 
-def outcomes() -> dict[int, dict]:
-    """Each draw's B = 2 score, B = 5 minus ``catnipp_ti``, recipe and "met" cells, from
-    the docs' table."""
+def table_rows() -> dict[int, list[str]]:
+    """The cells of each draw's row of the docs' table "All two-hour runs, one table"."""
     text = (ROOT / "docs" / "results.md").read_text()
     table = text[text.index("**All two-hour runs, one table.**"):]
     found = {}
     for line in table.splitlines():
         cells = [c.strip() for c in line.strip().strip("|").split("|")]
         if len(cells) == 11 and cells[0].isdigit():
-            found[int(cells[0])] = {"B2": float(cells[3]),
-                                    "B5_minus_ti": float(cells[9].split("±")[0]),
-                                    "recipe": cells[1], "met": cells[10]}
+            found[int(cells[0])] = cells
         elif found and not line.startswith("|"):
             break
     return found
+
+
+def outcomes() -> dict[int, dict]:
+    """Each draw's B = 2 score, B = 5 minus ``catnipp_ti``, recipe and "met" cells, from
+    the docs' table."""
+    return {draw: {"B2": float(cells[3]), "B5_minus_ti": float(cells[9].split("±")[0]),
+                   "recipe": cells[1], "met": cells[10]}
+            for draw, cells in table_rows().items()}
 
 
 def switches(recipe: str) -> set[str]:

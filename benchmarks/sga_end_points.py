@@ -41,12 +41,7 @@ def v2_points_at(points: torch.Tensor, cum: torch.Tensor, dist: torch.Tensor) ->
     """`paths.points_at` as `sga_rrt` v2 had it: no cap at the last real vertex."""
     d = points.shape[-2]
     seg = torch.searchsorted(cum.contiguous(), dist.contiguous(), right=True).clamp(1, d - 1) - 1
-    start = cum.gather(-1, seg)
-    length = cum.gather(-1, seg + 1) - start
-    a = points.gather(-2, seg.unsqueeze(-1).expand(*seg.shape, 2))
-    b = points.gather(-2, (seg + 1).unsqueeze(-1).expand(*seg.shape, 2))
-    frac = ((dist - start) / torch.where(length > 0, length, 1.0)).clamp(0, 1)
-    return a + (b - a) * frac.unsqueeze(-1)
+    return paths.along_segments(points, cum, dist, seg)
 
 
 @contextlib.contextmanager

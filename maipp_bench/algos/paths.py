@@ -23,7 +23,14 @@ def points_at(points: torch.Tensor, cum: torch.Tensor, dist: torch.Tensor) -> to
     d = points.shape[-2]
     last = (cum < cum[..., -1:]).sum(-1, keepdim=True)  # index of the last real vertex
     idx = torch.searchsorted(cum.contiguous(), dist.contiguous(), right=True)
-    seg = torch.minimum(idx, last).clamp(1, d - 1) - 1
+    return along_segments(points, cum, dist, torch.minimum(idx, last).clamp(1, d - 1) - 1)
+
+
+def along_segments(
+    points: torch.Tensor, cum: torch.Tensor, dist: torch.Tensor, seg: torch.Tensor
+) -> torch.Tensor:
+    """Points at arc lengths ``dist [..., R]`` on segments ``seg [..., R]`` (segment i joins
+    vertices i and i + 1) of polylines ``points [..., D, 2]``, clamped to the segment."""
     start = cum.gather(-1, seg)
     length = cum.gather(-1, seg + 1) - start
     a = points.gather(-2, seg.unsqueeze(-1).expand(*seg.shape, 2))
