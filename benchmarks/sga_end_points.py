@@ -1,14 +1,15 @@
-"""Do `sga_rrt`'s episodes turn on the last bits of its trees? (docs/protocol.md, "Where
-the `sga_rrt` episodes turn").
+"""Do `sga_rrt`'s episodes turn on the last bits of its trees? (docs/protocol.md, "`sga_rrt`
+v3").
 
 Plays a setting's first-trial episodes twice: as the method runs, and with every RRT
 grown from a root (and kept path) moved by one unit in the last place, which moves every
-tree node by a few ulps and leaves the tree's shape alone. An episode that differs
-between the two (beyond eval's 1e-9) turned on last bits, as it would between two CPUs
-that round one operation differently. ``--pre-v3`` plays both with the rule `sga_rrt` v2 had for a
-measurement at a branch's end (clamped onto the last padding vertex, the root, when the
-branch had two or more), to show what v3 changed; ``--moved`` counts the real
-measurement points that the v2 rule would put elsewhere.
+tree node by a few ulps (the tree's shape stays unless a nearest-node choice sat on a
+tie; not checked). An episode that differs between the two (beyond eval's 1e-9) turned
+on last bits, as it would between two CPUs that round one operation differently.
+``--pre-v3`` plays both with the rule `sga_rrt` v2 had for a point at a branch's end
+(clamped onto the last padding vertex, the root, when the branch had two or more), for
+the measurement points and the executed goal, to show what v3 changed; ``--moved``
+counts the real measurement points that the v2 rule would put elsewhere.
 
 Patches live in this process only (a diagnostic: the method and its fingerprint are
 unchanged).
@@ -68,12 +69,15 @@ def patched(rule_v2: bool, nudge: bool, moved: list[int]):
         return (old, valid) if rule_v2 else (pts, valid)
 
     sga.measurement_points = measure_counted
+    if rule_v2:
+        sga.points_at = v2_points_at  # the executed goal, found along the best branch
     if nudge:
         sga.SGARRTPolicy._grow = grow_nudged
     try:
         yield
     finally:
         sga.SGARRTPolicy._grow, sga.measurement_points = grow, measure
+        sga.points_at = _V3_POINTS_AT
 
 
 def main() -> None:

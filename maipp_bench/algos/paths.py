@@ -21,7 +21,9 @@ def points_at(points: torch.Tensor, cum: torch.Tensor, dist: torch.Tensor) -> to
     move it to wherever the padding lies (the root, for RRT branches).
     """
     d = points.shape[-2]
-    last = (cum < cum[..., -1:]).sum(-1, keepdim=True)  # index of the last real vertex
+    # The first vertex at the full length: the last real one (or, after zero-length
+    # final segments, one at the same place). Real vertices come first.
+    last = (cum < cum[..., -1:]).sum(-1, keepdim=True)
     idx = torch.searchsorted(cum.contiguous(), dist.contiguous(), right=True)
     return along_segments(points, cum, dist, torch.minimum(idx, last).clamp(1, d - 1) - 1)
 
@@ -35,7 +37,9 @@ def along_segments(
     length = cum.gather(-1, seg + 1) - start
     a = points.gather(-2, seg.unsqueeze(-1).expand(*seg.shape, 2))
     b = points.gather(-2, (seg + 1).unsqueeze(-1).expand(*seg.shape, 2))
-    frac = ((dist - start) / torch.where(length > 0, length, 1.0)).clamp(0, 1)
+    # A zero-length segment (only a zero-length path's) has no direction: stay at its start.
+    frac = torch.where(length > 0, (dist - start) / torch.where(length > 0, length, 1.0),
+                       0.0).clamp(0, 1)
     return a + (b - a) * frac.unsqueeze(-1)
 
 
