@@ -6,7 +6,9 @@ different one (a near tie there would flip on last bits) and the branch lengths 
 within 1e-14 of an edge (where the last bit decides candidacy).
 
 The edges are moved by patching the planner in this process only (a diagnostic: the
-method and its fingerprint are unchanged).
+method and its fingerprint are unchanged). Written for `sga_rrt` v2: the figures
+docs/protocol.md quotes from it are v2's against v2's boards; since v3 (the cause of
+those episodes, "`sga_rrt` v3") it plays v3 against v3's rows.
 
 Usage:
     python benchmarks/sga_band_edges.py --method sga_rrt_0.9_1.0 --setting budget=2.0 \\
