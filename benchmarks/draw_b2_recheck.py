@@ -30,6 +30,11 @@ def b2_column() -> dict[int, tuple[float, float]]:
             for draw, cells in table_rows().items()}
 
 
+def standing(diff: float, se: float) -> str:
+    """"ahead" (negative: the draw's mean is lower) or "behind", and whether by 2 se."""
+    return ("ahead" if diff < 0 else "behind") + (" (by 2 se)" if abs(diff) > 2 * se else "")
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--before", required=True, help="git revision of the board the draws used")
@@ -47,14 +52,11 @@ def main() -> None:
     for draw, (diff, se) in sorted(b2_column().items()):
         var = se**2 - old["trace_std"] ** 2 / old["n"] + new["trace_std"] ** 2 / new["n"]
         d2, se2 = diff + shift, math.sqrt(max(var, 0.0))
-        lead = "ahead" if d2 < 0 else "behind"
-        margin = " (by 2 se)" if abs(d2) > 2 * se2 else ""
-        was = ("ahead" if diff < 0 else "behind") + (" (by 2 se)" if abs(diff) > 2 * se else "")
-        mark = "" if was == lead + margin else f"   was {was}"
-        if mark:
+        now, was = standing(d2, se2), standing(diff, se)
+        if now != was:
             flips.append(draw)
-        print(f"  draw {draw:>2}: {diff:+6.1f} ± {se:.1f} -> {d2:+6.1f} ± {se2:.1f}  "
-              f"{lead}{margin}{mark}")
+        print(f"  draw {draw:>2}: {diff:+6.1f} ± {se:.1f} -> {d2:+6.1f} ± {se2:.1f}  {now}"
+              + ("" if now == was else f"   was {was}"))
     print(f"entries whose standing changed: {flips or 'none'}")
 
 

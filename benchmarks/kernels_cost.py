@@ -41,7 +41,7 @@ def child(suite_name: str, method: str, setting_key: str, episodes: int) -> dict
 
     torch.set_num_threads(1)
     suite = load_protocol(1).suite(suite_name)
-    setting = next(s for s in suite.settings if s.key == setting_key)
+    setting = suite.setting(setting_key)
     spec = algos.get_method(method)
     kwargs = {"checkpoint": str(spec.checkpoint(None))} if spec.learned else {}
     start = time.perf_counter()

@@ -98,9 +98,10 @@ def main() -> None:
     p.add_argument("--margins", action="store_true")
     args = p.parse_args()
     suite = load_protocol(1).suite(args.suite)
-    setting = next((s for s in suite.settings if s.key == args.setting), None)
-    if setting is None:
-        p.error(f"--setting {args.setting!r} is not a setting of {args.suite}")
+    try:
+        setting = suite.setting(args.setting)
+    except ValueError as e:
+        p.error(str(e))
     spec = algos.get_method(args.method)
     if not args.method.startswith("sga_rrt"):
         p.error(f"--method must be an sga_rrt method, got {args.method!r}")

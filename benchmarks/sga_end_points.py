@@ -46,9 +46,9 @@ def v2_points_at(points: torch.Tensor, cum: torch.Tensor, dist: torch.Tensor) ->
 
 
 @contextlib.contextmanager
-def patched(rule_v2: bool, nudge: bool, moved: list[int]):
+def patched(rule_v2: bool, nudge: bool, moved: list[int] | None):
     """The v2 end-point rule and/or one-ulp roots for every tree grown inside; ``moved``
-    collects how many real measurement points the two rules place differently."""
+    (if given) collects how many real measurement points the two rules place differently."""
     grow, measure = sga.SGARRTPolicy._grow, sga.measurement_points
 
     def grow_nudged(self, root, key, chain=None, chain_mask=None):
@@ -60,12 +60,15 @@ def patched(rule_v2: bool, nudge: bool, moved: list[int]):
 
     def measure_counted(points, mask, since, spacing, max_points):
         pts, valid = measure(points, mask, since, spacing, max_points)
+        if not rule_v2 and moved is None:
+            return pts, valid
         paths.points_at = v2_points_at
         try:
             old, _ = measure(points, mask, since, spacing, max_points)
         finally:
             paths.points_at = _V3_POINTS_AT
-        moved[0] += int(((pts != old).any(-1) & valid).sum())
+        if moved is not None:
+            moved[0] += int(((pts != old).any(-1) & valid).sum())
         return (old, valid) if rule_v2 else (pts, valid)
 
     sga.measurement_points = measure_counted
@@ -93,16 +96,17 @@ def main() -> None:
     if not args.method.startswith("sga_rrt"):
         p.error(f"--method must be an sga_rrt method, got {args.method!r}")
     suite = load_protocol(1).suite(args.suite)
-    setting = next((s for s in suite.settings if s.key == args.setting), None)
-    if setting is None:
-        p.error(f"--setting {args.setting!r} is not a setting of {args.suite}")
+    try:
+        setting = suite.setting(args.setting)
+    except ValueError as e:
+        p.error(str(e))
     spec = algos.get_method(args.method)
     seeds = list(suite.instance_seeds[: args.episodes])
     torch.set_num_threads(1)
     rule = "v2 (pre-v3)" if args.pre_v3 else "v3"
     played = {}
     for nudge in (False, True):
-        moved = [0]
+        moved = [0] if args.moved else None
         with torch.inference_mode(), patched(args.pre_v3, nudge, moved):
             played[nudge] = run_chunk(spec, suite.env_config(setting), seeds,
                                       suite.trial_seeds[0])

@@ -73,7 +73,7 @@ def child(suite_name: str, method: str, setting_key: str, episodes: int, dtype: 
 
     torch.set_num_threads(1)
     suite = load_protocol(1).suite(suite_name)
-    setting = next(s for s in suite.settings if s.key == setting_key)
+    setting = suite.setting(setting_key)
     spec = algos.get_method(method)
     spec = dataclasses.replace(spec, params={**spec.params, "fantasy_dtype": dtype})
     instances = list(suite.instance_seeds[:episodes] if trace is None

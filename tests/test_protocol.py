@@ -62,6 +62,9 @@ def test_bad_suite_and_method_names_list_valid_ones(tmp_path):
         eval_main(["--suite", "smoke", "--methods", "nope", "--out", str(tmp_path)])
     with pytest.raises(ValueError, match="valid methods"):
         algos.get_method("nope")
+    with pytest.raises(ValueError, match=r"valid settings: \['budget=2.0'"):
+        load_protocol(1).suite("risk_aware").setting("budget=9.0")
+    assert load_protocol(1).suite("risk_aware").setting("budget=3.0").key == "budget=3.0"
     with pytest.raises(SystemExit, match="METHOD=PATH"):
         eval_main(["--suite", "smoke", "--checkpoint", "greedy", "--out", str(tmp_path)])
     with pytest.raises(SystemExit, match="not among the methods"):

@@ -38,8 +38,7 @@ def along_segments(
     a = points.gather(-2, seg.unsqueeze(-1).expand(*seg.shape, 2))
     b = points.gather(-2, (seg + 1).unsqueeze(-1).expand(*seg.shape, 2))
     # A zero-length segment (only a zero-length path's) has no direction: stay at its start.
-    frac = torch.where(length > 0, (dist - start) / torch.where(length > 0, length, 1.0),
-                       0.0).clamp(0, 1)
+    frac = ((dist - start) / torch.where(length > 0, length, torch.inf)).clamp(0, 1)
     return a + (b - a) * frac.unsqueeze(-1)
 
 

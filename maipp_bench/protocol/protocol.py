@@ -69,6 +69,14 @@ class Suite:
         values = {**self.env, **setting.as_dict(), **overrides}
         return MAIPPConfig.from_dict(values)
 
+    def setting(self, key: str) -> Setting:
+        """The setting with this ``key`` (e.g. ``"budget=2.0"``)."""
+        for s in self.settings:
+            if s.key == key:
+                return s
+        raise ValueError(f"unknown setting {key!r} of suite {self.name}; valid settings: "
+                         f"{[s.key for s in self.settings]}")
+
     @property
     def n_episodes(self) -> int:
         return len(self.instance_seeds) * len(self.trial_seeds)
