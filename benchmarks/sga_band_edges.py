@@ -85,6 +85,19 @@ def smallest_gap(decisions: list[torch.Tensor], env_index: int) -> float:
     return best
 
 
+def sga_target(p: argparse.ArgumentParser, args: argparse.Namespace):
+    """``(suite, setting, method spec)`` of ``--suite``, ``--setting`` and an ``sga_rrt``
+    ``--method``; a bad one ends the script with the parser's error."""
+    if not args.method.startswith("sga_rrt"):
+        p.error(f"--method must be an sga_rrt method, got {args.method!r}")
+    suite = load_protocol(1).suite(args.suite)
+    try:
+        setting = suite.setting(args.setting)
+    except ValueError as e:
+        p.error(str(e))
+    return suite, setting, algos.get_method(args.method)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--suite", default="risk_aware")
@@ -97,14 +110,7 @@ def main() -> None:
                    help="edge offsets to play, each 'da,db'")
     p.add_argument("--margins", action="store_true")
     args = p.parse_args()
-    suite = load_protocol(1).suite(args.suite)
-    try:
-        setting = suite.setting(args.setting)
-    except ValueError as e:
-        p.error(str(e))
-    spec = algos.get_method(args.method)
-    if not args.method.startswith("sga_rrt"):
-        p.error(f"--method must be an sga_rrt method, got {args.method!r}")
+    suite, setting, spec = sga_target(p, args)
     seeds = args.instances or list(suite.instance_seeds[: args.episodes])
     row = boards.keyed(boards.load(args.suite))[(args.method, args.setting)]
     board = dict(zip(row["spot_check"]["instances"], row["spot_check"]["trace"]))

@@ -27,11 +27,10 @@ import contextlib
 import math
 
 import torch
+from sga_band_edges import sga_target
 
 import maipp_bench.algos.paths as paths
 import maipp_bench.algos.sga_rrt as sga
-from maipp_bench import algos
-from maipp_bench.protocol.protocol import load_protocol
 from maipp_bench.protocol.runner import run_chunk
 
 _V3_POINTS_AT = paths.points_at
@@ -93,14 +92,7 @@ def main() -> None:
     p.add_argument("--moved", action="store_true",
                    help="count real measurement points the v2 rule places elsewhere")
     args = p.parse_args()
-    if not args.method.startswith("sga_rrt"):
-        p.error(f"--method must be an sga_rrt method, got {args.method!r}")
-    suite = load_protocol(1).suite(args.suite)
-    try:
-        setting = suite.setting(args.setting)
-    except ValueError as e:
-        p.error(str(e))
-    spec = algos.get_method(args.method)
+    suite, setting, spec = sga_target(p, args)
     seeds = list(suite.instance_seeds[: args.episodes])
     torch.set_num_threads(1)
     rule = "v2 (pre-v3)" if args.pre_v3 else "v3"
