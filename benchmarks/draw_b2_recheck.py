@@ -6,7 +6,8 @@ when the draw was scored. When that row is recomputed (`sga_rrt` v3, docs/protoc
 each entry moves by the change of the row's mean, and its error by the change of the
 row's share of it: se_new² = se_old² - s_old²/n_old + s_new²/n_new (the draw's own share
 is unchanged). Prints every draw's entry before and after, and whether it still leads
-(negative: ahead) and by more than two standard errors.
+(negative: ahead) and by more than two standard errors. Entries marked "(v3)" were
+scored against the recomputed row already (draws after the recompute) and do not move.
 
 Usage:
     python benchmarks/draw_b2_recheck.py --before 3358ddd            # against the working tree
@@ -24,10 +25,18 @@ from draw_signals import table_rows
 METHOD, SETTING = "sga_rrt_0.3_0.4", "budget=2.0"
 
 
-def b2_column() -> dict[int, tuple[float, float]]:
-    """Each draw's "B = 2 minus `sga_rrt_0.3_0.4`" cell: (difference, standard error)."""
-    return {draw: tuple(float(x) for x in cells[7].split("±"))
-            for draw, cells in table_rows().items()}
+V3_MARK = "(v3)"  # a B = 2 cell scored against the recomputed row
+
+
+def b2_column() -> dict[int, tuple[float, float, bool]]:
+    """Each draw's "B = 2 minus `sga_rrt_0.3_0.4`" cell: (difference, standard error,
+    whether it is against the recomputed row already)."""
+    column = {}
+    for draw, cells in table_rows().items():
+        cell = cells[7]
+        diff, se = (float(x) for x in cell.removesuffix(V3_MARK).split("±"))
+        column[draw] = (diff, se, cell.endswith(V3_MARK))
+    return column
 
 
 def standing(diff: float, se: float) -> str:
@@ -49,7 +58,11 @@ def main() -> None:
           f"{new['trace_mean']:.3f} ± {new['trace_std']:.2f}; every entry moves by "
           f"{shift:+.2f}")
     flips = []
-    for draw, (diff, se) in sorted(b2_column().items()):
+    for draw, (diff, se, scored_after) in sorted(b2_column().items()):
+        if scored_after:
+            print(f"  draw {draw:>2}: {diff:+6.1f} ± {se:.1f} (scored against it)"
+                  f"  {standing(diff, se)}")
+            continue
         var = se**2 - old["trace_std"] ** 2 / old["n"] + new["trace_std"] ** 2 / new["n"]
         d2, se2 = diff + shift, math.sqrt(max(var, 0.0))
         now, was = standing(d2, se2), standing(diff, se)
