@@ -55,13 +55,13 @@ def main() -> None:
     new = boards.keyed(new_board)[(METHOD, SETTING)]
     shift = old["trace_mean"] - new["trace_mean"]
     print(f"{METHOD} {SETTING}: {old['trace_mean']:.3f} ± {old['trace_std']:.2f} -> "
-          f"{new['trace_mean']:.3f} ± {new['trace_std']:.2f}; every entry moves by "
+          f"{new['trace_mean']:.3f} ± {new['trace_std']:.2f}; every unmarked entry moves by "
           f"{shift:+.2f}")
     flips = []
     for draw, (diff, se, scored_after) in sorted(b2_column().items()):
-        if scored_after:
-            print(f"  draw {draw:>2}: {diff:+6.1f} ± {se:.1f} (scored against it)"
-                  f"  {standing(diff, se)}")
+        if scored_after:  # against the old row it would have been diff - shift
+            print(f"  draw {draw:>2}: {diff:+6.1f} ± {se:.1f} (scored against it; "
+                  f"{diff - shift:+.1f} against the old row)  {standing(diff, se)}")
             continue
         var = se**2 - old["trace_std"] ** 2 / old["n"] + new["trace_std"] ** 2 / new["n"]
         d2, se2 = diff + shift, math.sqrt(max(var, 0.0))
