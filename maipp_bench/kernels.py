@@ -14,7 +14,8 @@ differently; docs/protocol.md, "Another CPU"). ``python -m maipp_bench.eval`` pi
 (``mkl_kernels``).
 
 Not pinned: torch's own vectorised kernels (softmax, attention), whose width follows the
-CPU (:func:`aten_capability`; AVX512 on both boxes measured); boards record it too.
+CPU (:func:`aten_capability`; AVX512 on the first two boxes measured, AVX2 on an AMD EPYC
+without AVX512); boards record it too.
 
 MKL fixes its code path at its first call, and importing tensordict already makes one: pin
 before importing it (this module imports only torch, and only inside its functions).
