@@ -12,7 +12,8 @@ stage 3's start over its average (the cells' "(start kept)" / "(average kept)").
 Families, from the switches in the table's recipe cell (its first code span): ``STAGE3=0``
 (no stage 3: its minutes go to stage 2), ``POP=2`` (two seeds side by side, the better kept
 on held-out episodes), ``SELECT=1 FINAL=1``, ``SELECT=1`` and ``fixed`` (no switches, the
-first draws); "all" pools them.
+first draws); "all" pools them. A family whose draws trained in both precisions (the
+recipe cell names "bf16" or not: float32) gets a line for each under its own.
 
 Usage:
     python benchmarks/draw_rate.py [--level 0.95]
@@ -42,6 +43,23 @@ def clopper_pearson(k: int, n: int, level: float) -> tuple[float, float]:
     return lo, hi
 
 
+def precision(recipe: str) -> str:
+    """The training precision a recipe cell names: "bf16", else the default float32."""
+    return "bf16" if "bf16" in recipe else "float32"
+
+
+def print_rate(name: str, ds: list[int], draws: dict[int, dict], level: float) -> None:
+    """One line of the table: the draws met in the means, and of them within two hours."""
+    met = [d for d in ds if draws[d]["met"].startswith(("in the means", "by a margin"))]
+    timely = [d for d in met if "over 2 h" not in draws[d]["met"]]
+    cells = []
+    for k in (len(met), len(timely)):
+        lo, hi = clopper_pearson(k, len(ds), level)
+        cells.append(f"{k:2d} ({lo:4.0%} to {hi:4.0%})")
+    print(f"{name:18} {len(ds):5d}  {cells[0]:18}  {cells[1]:18}  "
+          f"{', '.join(map(str, met))}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--level", type=float, default=0.95)
@@ -55,14 +73,13 @@ def main() -> None:
     groups["all"] = sorted(draws)
     print(f"{'family':18} {'draws':>5}  {'met':18}  {'met within 2 h':18}  draws met")
     for name, ds in groups.items():
-        met = [d for d in ds if draws[d]["met"].startswith(("in the means", "by a margin"))]
-        timely = [d for d in met if "over 2 h" not in draws[d]["met"]]
-        cells = []
-        for k in (len(met), len(timely)):
-            lo, hi = clopper_pearson(k, len(ds), args.level)
-            cells.append(f"{k:2d} ({lo:4.0%} to {hi:4.0%})")
-        print(f"{name:18} {len(ds):5d}  {cells[0]:18}  {cells[1]:18}  "
-              f"{', '.join(map(str, met))}")
+        print_rate(name, ds, draws, args.level)
+        by_precision: dict[str, list[int]] = {}
+        for d in ds:
+            by_precision.setdefault(precision(draws[d]["recipe"]), []).append(d)
+        if name != "all" and len(by_precision) > 1:  # a family that mixes precisions
+            for prec, pds in sorted(by_precision.items()):
+                print_rate(f"  {prec}", pds, draws, args.level)
     print(f"(exact {args.level:.0%} intervals for each rate)")
     missed = [d for d, o in draws.items()
               if not o["met"].startswith(("in the means", "by a margin"))]
