@@ -13,7 +13,7 @@ Families, from the switches in the table's recipe cell (its first code span): ``
 (no stage 3: its minutes go to stage 2), ``POP=2`` (two seeds side by side, the better kept
 on held-out episodes), ``SELECT=1 FINAL=1``, ``SELECT=1`` and ``fixed`` (no switches, the
 first draws); "all" pools them. A family whose draws trained in both precisions (the
-recipe cell names "bf16" or not: float32) gets a line for each under its own.
+recipe cell has a field starting "bf16" or not: float32) gets a line for each under its own.
 
 Usage:
     python benchmarks/draw_rate.py [--level 0.95]
@@ -44,8 +44,9 @@ def clopper_pearson(k: int, n: int, level: float) -> tuple[float, float]:
 
 
 def precision(recipe: str) -> str:
-    """The training precision a recipe cell names: "bf16", else the default float32."""
-    return "bf16" if "bf16" in recipe else "float32"
+    """The training precision a recipe cell lists: "bf16" when one of its comma-separated
+    fields starts with it (a box's "without native bf16" does not count), else float32."""
+    return "bf16" if any(f.strip().startswith("bf16") for f in recipe.split(",")) else "float32"
 
 
 def print_rate(name: str, ds: list[int], draws: dict[int, dict], level: float) -> None:
