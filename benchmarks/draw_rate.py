@@ -8,6 +8,9 @@ handful of draws per recipe, the interval says how little the count alone pins d
 Then how many of the draws that missed were behind ``catnipp_ti`` at B = 5 in the mean,
 which draw has the lowest B = 2, and how often the ``FINAL=1`` draws' final choice kept
 stage 3's start over its average (the cells' "(start kept)" / "(average kept)").
+With ``--plot PATH``, a figure of every draw's two deciding margins, the table's B = 2
+minus ``sga_rrt_0.3_0.4`` and B = 5 minus ``catnipp_ti`` (each with two standard errors),
+coloured by whether the draw met the target: where the draws miss, at a glance.
 
 Families, from the switches in the table's recipe cell (its first code span): ``STAGE3=0``
 (no stage 3: its minutes go to stage 2), ``POP=2`` (two seeds side by side, the better kept
@@ -16,14 +19,16 @@ first draws); "all" pools them. A family whose draws trained in both precisions 
 recipe cell has a field starting "bf16" or not: float32) gets a line for each under its own.
 
 Usage:
-    python benchmarks/draw_rate.py [--level 0.95]
+    python benchmarks/draw_rate.py [--level 0.95] [--plot docs/img/draws_2h_margins.png]
 """
 
 from __future__ import annotations
 
 import argparse
+import re
+from pathlib import Path
 
-from draw_signals import outcomes, switches
+from draw_signals import outcomes, switches, table_rows
 from scipy.stats import beta
 
 FAMILIES = ("STAGE3=0", "POP=2", "SELECT=1 FINAL=1", "SELECT=1")  # tested in order
@@ -61,9 +66,57 @@ def print_rate(name: str, ds: list[int], draws: dict[int, dict], level: float) -
           f"{', '.join(map(str, met))}")
 
 
+def margin(cell: str) -> tuple[float, float]:
+    """A margin cell of the table ("-3.7 ± 2.2 (v3)") as (mean, standard error)."""
+    m = re.match(r"\s*([+-]?[0-9.]+)\s*±\s*([0-9.]+)", cell)
+    if m is None:
+        raise SystemExit(f"not a margin cell 'mean ± se': {cell!r}")
+    return float(m.group(1)), float(m.group(2))
+
+
+def plot_margins(draws: dict[int, dict], out: Path) -> None:
+    """Each draw's B = 2 and B = 5 margins (negative: ahead of the baseline) with two
+    standard errors, coloured by met / missed, marked by training precision."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cells = table_rows()
+    panels = (("B = 2 minus sga_rrt_0.3_0.4 (v2's row to draw 28, v3's after)", 7),
+              ("B = 5 minus catnipp_ti (paired)", 9))
+    fig, axes = plt.subplots(2, 1, figsize=(10, 6.5), sharex=True)
+    for ax, (title, col) in zip(axes, panels):
+        for d in sorted(draws):
+            mean, se = margin(cells[d][col])
+            met = draws[d]["met"].startswith(("in the means", "by a margin"))
+            ax.errorbar(d, mean, yerr=2 * se, color="tab:green" if met else "tab:red",
+                        marker="s" if precision(draws[d]["recipe"]) == "bf16" else "o",
+                        ms=5, capsize=2, lw=1)
+        ax.axhline(0, color="k", lw=0.8)
+        ax.set_title(title, fontsize=10)
+        ax.set_ylabel("Tr(P) difference")
+        ax.grid(alpha=0.3)
+    axes[-1].set_xlabel("draw (docs/results.md, 'All two-hour runs, one table')")
+    handles = [plt.Line2D([], [], color=c, marker=m, ls="", label=lab)
+               for c, m, lab in (("tab:green", "o", "met in the means"),
+                                 ("tab:red", "o", "missed"),
+                                 ("gray", "o", "float32"), ("gray", "s", "bf16"))]
+    axes[0].legend(handles=handles, fontsize=8, ncol=4, loc="upper left")
+    fig.suptitle("Two-hour draws: margins below 0 are ahead of the baseline "
+                 "(bars: two standard errors)", fontsize=11)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    print(f"wrote {out}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--level", type=float, default=0.95)
+    parser.add_argument("--plot", type=Path, default=None,
+                        help="write a figure of every draw's B = 2 and B = 5 margins here")
     args = parser.parse_args()
     if not 0 < args.level < 1:
         raise SystemExit(f"--level must be in (0, 1), got {args.level}")
@@ -98,6 +151,8 @@ def main() -> None:
     print(f"FINAL=1 draws: {len(final)}, the final choice kept stage 3's start in "
           f"{len(kept['start'])} ({', '.join(map(str, kept['start']))}), its average in "
           f"{len(kept['average'])} ({', '.join(map(str, kept['average']))})")
+    if args.plot is not None:
+        plot_margins(draws, args.plot)
 
 if __name__ == "__main__":
     main()
