@@ -25,10 +25,9 @@ Usage:
 from __future__ import annotations
 
 import argparse
-import re
 from pathlib import Path
 
-from draw_signals import outcomes, switches, table_rows
+from draw_signals import outcomes, switches
 from scipy.stats import beta
 
 FAMILIES = ("STAGE3=0", "POP=2", "SELECT=1 FINAL=1", "SELECT=1")  # tested in order
@@ -54,24 +53,21 @@ def precision(recipe: str) -> str:
     return "bf16" if any(f.strip().startswith("bf16") for f in recipe.split(",")) else "float32"
 
 
+def met(outcome: dict) -> bool:
+    """Whether a draw met the ranking target in the means (its "met" cell)."""
+    return outcome["met"].startswith(("in the means", "by a margin"))
+
+
 def print_rate(name: str, ds: list[int], draws: dict[int, dict], level: float) -> None:
     """One line of the table: the draws met in the means, and of them within two hours."""
-    met = [d for d in ds if draws[d]["met"].startswith(("in the means", "by a margin"))]
-    timely = [d for d in met if "over 2 h" not in draws[d]["met"]]
+    hits = [d for d in ds if met(draws[d])]
+    timely = [d for d in hits if "over 2 h" not in draws[d]["met"]]
     cells = []
-    for k in (len(met), len(timely)):
+    for k in (len(hits), len(timely)):
         lo, hi = clopper_pearson(k, len(ds), level)
         cells.append(f"{k:2d} ({lo:4.0%} to {hi:4.0%})")
     print(f"{name:18} {len(ds):5d}  {cells[0]:18}  {cells[1]:18}  "
-          f"{', '.join(map(str, met))}")
-
-
-def margin(cell: str) -> tuple[float, float]:
-    """A margin cell of the table ("-3.7 ± 2.2 (v3)") as (mean, standard error)."""
-    m = re.match(r"\s*([+-]?[0-9.]+)\s*±\s*([0-9.]+)", cell)
-    if m is None:
-        raise SystemExit(f"not a margin cell 'mean ± se': {cell!r}")
-    return float(m.group(1)), float(m.group(2))
+          f"{', '.join(map(str, hits))}")
 
 
 def plot_margins(draws: dict[int, dict], out: Path) -> None:
@@ -82,15 +78,13 @@ def plot_margins(draws: dict[int, dict], out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    cells = table_rows()
-    panels = (("B = 2 minus sga_rrt_0.3_0.4 (v2's row to draw 28, v3's after)", 7),
-              ("B = 5 minus catnipp_ti (paired)", 9))
+    panels = (("B = 2 minus sga_rrt_0.3_0.4 (v2's row to draw 28, v3's after)", "B2_minus_sga"),
+              ("B = 5 minus catnipp_ti (paired)", "B5_minus_ti_se"))
     fig, axes = plt.subplots(2, 1, figsize=(10, 6.5), sharex=True)
-    for ax, (title, col) in zip(axes, panels):
+    for ax, (title, key) in zip(axes, panels):
         for d in sorted(draws):
-            mean, se = margin(cells[d][col])
-            met = draws[d]["met"].startswith(("in the means", "by a margin"))
-            ax.errorbar(d, mean, yerr=2 * se, color="tab:green" if met else "tab:red",
+            mean, se = draws[d][key]
+            ax.errorbar(d, mean, yerr=2 * se, color="tab:green" if met(draws[d]) else "tab:red",
                         marker="s" if precision(draws[d]["recipe"]) == "bf16" else "o",
                         ms=5, capsize=2, lw=1)
         ax.axhline(0, color="k", lw=0.8)
@@ -135,8 +129,7 @@ def main() -> None:
             for prec, pds in sorted(by_precision.items()):
                 print_rate(f"  {prec}", pds, draws, args.level)
     print(f"(exact {args.level:.0%} intervals for each rate)")
-    missed = [d for d, o in draws.items()
-              if not o["met"].startswith(("in the means", "by a margin"))]
+    missed = [d for d, o in draws.items() if not met(o)]
     behind = [d for d in missed if draws[d]["B5_minus_ti"] > 0]
     print(f"missed: {len(missed)}, of them behind catnipp_ti at B = 5 in the mean: "
           f"{len(behind)} ({', '.join(map(str, sorted(behind)))})")

@@ -91,12 +91,24 @@ def table_rows() -> dict[int, list[str]]:
     return found
 
 
+def margin(cell: str) -> tuple[float, float]:
+    """A margin cell of the table ("-3.7 ± 2.2 (v3)") as (mean, standard error)."""
+    m = re.match(r"\s*([+-]?[0-9.]+)\s*±\s*([0-9.]+)", cell)
+    if m is None:
+        raise SystemExit(f"not a margin cell 'mean ± se': {cell!r}")
+    return float(m.group(1)), float(m.group(2))
+
+
 def outcomes() -> dict[int, dict]:
-    """Each draw's B = 2 score, B = 5 minus ``catnipp_ti``, recipe and "met" cells, from
-    the docs' table."""
-    return {draw: {"B2": float(cells[3]), "B5_minus_ti": float(cells[9].split("±")[0]),
-                   "recipe": cells[1], "met": cells[10]}
-            for draw, cells in table_rows().items()}
+    """Each draw's B = 2 score, its margins (mean, standard error) at B = 2 against
+    ``sga_rrt_0.3_0.4`` and at B = 5 against ``catnipp_ti``, B = 5's mean alone as
+    ``B5_minus_ti``, and its recipe and "met" cells, from the docs' table."""
+    out = {}
+    for draw, cells in table_rows().items():
+        b2, b5 = margin(cells[7]), margin(cells[9])
+        out[draw] = {"B2": float(cells[3]), "B2_minus_sga": b2, "B5_minus_ti_se": b5,
+                     "B5_minus_ti": b5[0], "recipe": cells[1], "met": cells[10]}
+    return out
 
 
 def switches(recipe: str) -> set[str]:
