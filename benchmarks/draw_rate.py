@@ -78,8 +78,9 @@ def plot_margins(draws: dict[int, dict], out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    panels = (("B = 2 minus sga_rrt_0.3_0.4 (v2's row to draw 28, v3's after)", "B2_minus_sga"),
-              ("B = 5 minus catnipp_ti (paired)", "B5_minus_ti_se"))
+    panels = (("B = 2 minus sga_rrt_0.3_0.4 (v2's row to draw 28, v3's after)",
+               "B2_minus_sga_mean_se"),
+              ("B = 5 minus catnipp_ti (paired)", "B5_minus_ti_mean_se"))
     fig, axes = plt.subplots(2, 1, figsize=(10, 6.5), sharex=True)
     for ax, (title, key) in zip(axes, panels):
         for d in sorted(draws):
