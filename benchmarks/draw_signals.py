@@ -107,7 +107,8 @@ def outcomes() -> dict[int, dict]:
     for draw, cells in table_rows().items():
         b2, b5 = margin(cells[7]), margin(cells[9])
         out[draw] = {"B2": float(cells[3]), "B2_minus_sga_mean_se": b2,
-                     "B5_minus_ti_mean_se": b5, "B5_minus_ti": b5[0], "recipe": cells[1], "met": cells[10]}
+                     "B5_minus_ti_mean_se": b5, "B5_minus_ti": b5[0],
+                     "recipe": cells[1], "met": cells[10]}
     return out
 
 
