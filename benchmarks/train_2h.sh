@@ -49,7 +49,16 @@
 # its minutes (and the final choice's) go to stage 2 instead (default 68 minutes with
 # POP=2, 70 without), and the start choice's pick, exported with its card, is the policy
 # file OUT_DIR/final.pt.
-# Usage: [SELECT=1 [SELECT_BUDGETS="2 5" SELECT_EPISODES="160 64"]] [POP=2] [FINAL=1 | STAGE3=0] [OVERRIDES="k=v ..."] [UPDATES="U1 U2 U3"] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
+# With DEADLINE (2026-12-03; minutes of the whole run's wall clock, 120 by default, 0 for
+# none as in every draw before), stage 3 gets at most what is left of the deadline once the
+# minutes spent and a reserve for what follows it are taken out: the choices play a fixed
+# number of episodes, which take longer on a slower box (the thirty-fourth and
+# thirty-fifth draws took 122.9 and 126.8 minutes). The reserve is 2 minutes for saves
+# and exports, plus with FINAL=1 the final choice's seconds estimated from the start
+# choice's x 1.5; with fewer than 8 minutes left there is no stage 3 and the start choice
+# is the policy file, as with STAGE3=0 (benchmarks/stage3_minutes.py; the plan goes to
+# OUT_DIR/deadline.json). It trims stage 3 only: with STAGE3=0 or UPDATES it is refused.
+# Usage: [SELECT=1 [SELECT_BUDGETS="2 5" SELECT_EPISODES="160 64"]] [POP=2] [FINAL=1 | STAGE3=0] [DEADLINE=120] [OVERRIDES="k=v ..."] [UPDATES="U1 U2 U3"] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
 # UPDATES (smoke runs and tests; 2026-11-28) stops the stages after U1, U2 and U3 updates
 # instead of M1, M2 and M3 minutes, so that a busy machine makes the same run (stage 3
 # needs 5 updates for a snapshot to average); with STAGE3=0 it is "U1 U2", and M3 and LR3
@@ -92,6 +101,17 @@ export HELDOUT_SET=${HELDOUT_SET:-2}  # final_choice.sh reads it too
     || { echo "train_2h.sh: FINAL must be 0 or 1, got '$FINAL'" >&2; exit 2; }
 [[ $HELDOUT_SET == 1 || $HELDOUT_SET == 2 ]] \
     || { echo "train_2h.sh: HELDOUT_SET must be 1 or 2, got '$HELDOUT_SET'" >&2; exit 2; }
+DEADLINE_TYPED=${DEADLINE+typed}
+DEADLINE=${DEADLINE:-120}
+[[ $DEADLINE =~ ^[0-9]+([.][0-9]+)?$ ]] \
+    || { echo "train_2h.sh: DEADLINE must be minutes >= 0 (0: none), got '$DEADLINE'" >&2; exit 2; }
+if [[ $STAGE3 == 0 || -n ${UPDATES:-} ]]; then  # nothing for it to trim
+    [[ -z $DEADLINE_TYPED || $DEADLINE =~ ^0+([.]0+)?$ ]] \
+        || { echo "train_2h.sh: DEADLINE trims stage 3's minutes: not with STAGE3=0 or UPDATES" >&2; exit 2; }
+    DEADLINE=0
+fi
+[[ $FINAL == 0 || $SELECT == 1 || $DEADLINE =~ ^0+([.]0+)?$ ]] \
+    || { echo "train_2h.sh: FINAL=1 under DEADLINE estimates the final choice's minutes from SELECT=1's start choice: type SELECT=1, or DEADLINE=0" >&2; exit 2; }
 if [[ $STAGE3 == 0 ]]; then D2=$((POP == 2 ? 68 : 70)) D3=""
 elif [[ $SELECT == 1 ]]; then D2=$((POP == 2 ? 39 : 42)) D3=$((FINAL == 1 ? 26 : 28))
 else D2=37 D3=36; fi
@@ -200,9 +220,20 @@ if [[ $SELECT == 1 ]]; then
     WALL_NOTE="wall_s_with_init leaves out the updates of stage 2 after it and the minutes of the choice; the whole wall clock of the run is in $OUT/wall.txt"
     NOTE="$RUN_NOTE; stage 3 started from $START, $CHOSEN_BY; $WALL_NOTE"
 fi
+WHY_NO3="with STAGE3=0"
+if [[ $STAGE3 == 1 && ! $DEADLINE =~ ^0+([.]0+)?$ ]]; then  # stage 3's minutes under it
+    S3ARGS=(--wall "$OUT/wall.txt" --minutes "$M3" --deadline "$DEADLINE" --out "$OUT/deadline.json")
+    [[ $SELECT == 1 ]] && S3ARGS+=(--select "$OUT/select.json")
+    [[ $FINAL == 1 ]] && S3ARGS+=(--final --final-episodes "${FINAL_EPISODES:-64}")
+    M3=$(python "$HERE/stage3_minutes.py" "${S3ARGS[@]}")
+    L3=(total_updates=100000 max_minutes="$M3")
+    if [[ $M3 == 0 ]]; then
+        STAGE3=0 WHY_NO3="under DEADLINE=$DEADLINE (too few minutes left for stage 3: $OUT/deadline.json)"
+    fi
+fi
 if [[ $STAGE3 == 0 ]]; then  # the start choice's pick is the policy file
     bash "$HERE/export_snapshot.sh" "$START" "$OUT/final.pt" "$OUT/export" \
-        "benchmarks/train_2h.sh with STAGE3=0: $RUN_NOTE; no stage 3, the policy is $START, $CHOSEN_BY; $WALL_NOTE"
+        "benchmarks/train_2h.sh $WHY_NO3: $RUN_NOTE; no stage 3, the policy is $START${CHOSEN_BY:+, $CHOSEN_BY}${WALL_NOTE:+; $WALL_NOTE}"
     echo "final $OUT/final.pt $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
 else
     $TRAIN init="$START" seed="$((SEED + 2))" algo.lr="$LR3" threads=2 \

@@ -9,6 +9,7 @@ import shutil
 import subprocess
 import sys
 import warnings
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
 import numpy as np
@@ -576,7 +577,10 @@ def test_training_scripts_reject_bad_arguments_before_training(script, args, mes
     ("UPDATES", "1 2", "UPDATES must be three positive integers (stages 1, 2 and 3), got '1 2'"),
     ("UPDATES", "1 0 5", "UPDATES must be three positive integers"),
     ("STAGE3", "2", "STAGE3 must be 0 or 1, got '2'"),
-    ("STAGE3", "0", "STAGE3=0 needs SELECT=1")])
+    ("STAGE3", "0", "STAGE3=0 needs SELECT=1"),
+    ("DEADLINE", "soon", "DEADLINE must be minutes >= 0 (0: none), got 'soon'"),
+    ("DEADLINE", "-5", "DEADLINE must be minutes >= 0"),
+    ("FINAL", "1", "FINAL=1 under DEADLINE estimates the final choice's minutes from SELECT=1")])
 def test_train_2h_rejects_a_bad_switch_before_training(tmp_path, variable, value, message):
     out = tmp_path / "run"
     proc = subprocess.run(["bash", str(Path(__file__).parents[1] / "benchmarks" / "train_2h.sh"),
@@ -591,7 +595,8 @@ def test_train_2h_rejects_a_bad_switch_before_training(tmp_path, variable, value
     ({"FINAL": "1"}, [], "STAGE3=0 needs SELECT=1 (its choice is the policy) and no FINAL=1"),
     ({}, ["1", "2", "3"], "STAGE3=0 trains no stage 3: M3 and LR3 are not taken"),
     ({"UPDATES": "1 2 3"}, [], "UPDATES must be two positive integers (stages 1 and 2), got"),
-    ({"UPDATES": "1 x"}, [], "UPDATES must be two positive integers")])
+    ({"UPDATES": "1 x"}, [], "UPDATES must be two positive integers"),
+    ({"DEADLINE": "100"}, [], "DEADLINE trims stage 3's minutes: not with STAGE3=0 or UPDATES")])
 def test_train_2h_without_stage3_rejects_what_it_cannot_use(tmp_path, env, args, message):
     out = tmp_path / "run"
     proc = subprocess.run(["bash", str(Path(__file__).parents[1] / "benchmarks" / "train_2h.sh"),
@@ -702,6 +707,85 @@ def test_train_2h_without_stage3_ships_the_start_choice(tmp_path):
     ours = torch.load(out / "final.pt", weights_only=False)["core"]
     assert theirs.keys() == ours.keys()
     assert all(torch.equal(ours[k], theirs[k]) for k in theirs)
+
+
+def test_train_2h_refuses_a_deadline_with_updates(tmp_path):
+    out = tmp_path / "run"
+    proc = subprocess.run(["bash", str(Path(__file__).parents[1] / "benchmarks" / "train_2h.sh"),
+                           str(out)], capture_output=True, text=True, timeout=60,
+                          env={**os.environ, "DEADLINE": "90", "UPDATES": "1 2 5"})
+    assert proc.returncode == 2
+    assert "DEADLINE trims stage 3's minutes: not with STAGE3=0 or UPDATES" in proc.stderr
+    assert not out.exists()
+
+
+def test_train_2h_past_its_deadline_ships_the_start_choice(tmp_path):
+    """benchmarks/train_2h.sh with DEADLINE (minutes, not UPDATES): a deadline already
+    spent leaves stage 3 fewer than FLOOR minutes, so there is no stage 3 and no final
+    choice: the start choice is exported as the policy file, the plan in deadline.json."""
+    out = tmp_path / "run"
+    tiny = [*TINY_TRAIN, "algo.intent_rollouts=2", "algo.intent_depth=2"]
+    proc = subprocess.run(  # stage 2's limit counts stage 1's minutes: room for one update
+        ["bash", str(Path(__file__).parents[1] / "benchmarks" / "train_2h.sh"), str(out), "3",
+         "0.01", "0.4", "5"], capture_output=True, text=True, timeout=600,
+        env={**os.environ, "SELECT": "1", "SELECT_EPISODES": "2", "FINAL": "1",
+             "FINAL_EPISODES": "2", "DEADLINE": "1", "OVERRIDES": " ".join(tiny)})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    stamps = [line.split()[0] for line in (out / "wall.txt").read_text().splitlines()]
+    assert stamps == ["start", "stage1", "stage2", "selected", "final", "end"]
+    plan = json.loads((out / "deadline.json").read_text())
+    assert plan["minutes"] == 0 and plan["deadline"] == 1 and plan["left"] < plan["floor"]
+    assert plan["final_estimate"] > 0  # FINAL=1: the final choice's minutes were reserved
+    assert not (out / "stage3").exists() and not (out / "final_select.json").exists()
+    chosen = Path(json.loads((out / "select.json").read_text())["chosen"]["path"])
+    card = json.loads((out / "final.json").read_text())
+    assert "under DEADLINE=1" in card["selected_by"] and str(chosen) in card["selected_by"]
+    theirs = torch.load(chosen, weights_only=False)["core"]
+    ours = torch.load(out / "final.pt", weights_only=False)["core"]
+    assert all(torch.equal(ours[k], theirs[k]) for k in theirs)
+
+
+def _stage3_minutes(tmp_path, *args, spent=90.0, seconds=600.0, wall=None):
+    """benchmarks/stage3_minutes.py on a run begun ``spent`` minutes ago (or with ``wall``
+    as its wall.txt) whose start choice (4 candidates, 96 episodes at B = 2 and 48 at
+    B = 5, as POP=2's) took ``seconds``."""
+    begun = datetime.now(timezone.utc) - timedelta(minutes=spent)
+    (tmp_path / "wall.txt").write_text(wall or f"start {begun:%Y-%m-%dT%H:%M:%SZ}\n")
+    (tmp_path / "select.json").write_text(json.dumps(
+        {"budget": [2.0, 5.0], "episodes": [96, 48], "seconds": seconds,
+         "candidates": [{}] * 4}))
+    return subprocess.run(
+        [sys.executable, str(Path(__file__).parents[1] / "benchmarks" / "stage3_minutes.py"),
+         "--wall", str(tmp_path / "wall.txt"), "--minutes", "26", "--deadline", "120", *args],
+        capture_output=True, text=True, timeout=60)
+
+
+def test_stage3_minutes_leaves_room_for_the_final_choice(tmp_path):
+    """The final choice (2 candidates x 64 episodes at B = 4 and 5: 1152 episode-budgets
+    against the start choice's 1728) is estimated at 600 s x 1152 / 1728 = 400 s, x 1.5
+    = 10 minutes; with 2 minutes' allowance and 90 spent, stage 3 gets 18 of its 26."""
+    proc = _stage3_minutes(tmp_path, "--select", str(tmp_path / "select.json"), "--final",
+                           "--out", str(tmp_path / "plan.json"))
+    assert proc.returncode == 0, proc.stderr
+    assert float(proc.stdout) == pytest.approx(18.0, abs=0.05)
+    plan = json.loads((tmp_path / "plan.json").read_text())
+    assert plan["final_estimate"] == pytest.approx(10.0) and plan["allowance"] == 2.0
+    # no final choice: only the allowance is reserved, and stage 3 keeps its typed minutes
+    proc = _stage3_minutes(tmp_path, "--select", str(tmp_path / "select.json"))
+    assert float(proc.stdout) == 26
+    # fewer than 8 minutes left: no stage 3
+    proc = _stage3_minutes(tmp_path, "--select", str(tmp_path / "select.json"), "--final",
+                           spent=102.5)
+    assert float(proc.stdout) == 0 and "no stage 3" in proc.stderr
+
+
+@pytest.mark.parametrize(("args", "wall", "message"), [
+    (["--final"], None, "needs the start choice's seconds (SELECT=1's select.json)"),
+    ([], "begun 2026-12-03T16:01:13Z\n", "the first line is not 'start <time>'")])
+def test_stage3_minutes_bad_input_is_a_clear_error(tmp_path, args, wall, message):
+    proc = _stage3_minutes(tmp_path, *args, wall=wall)
+    assert proc.returncode == 2
+    assert message in proc.stderr
 
 
 def test_final_choice_refuses_a_run_it_cannot_read(tmp_path):
