@@ -55,8 +55,8 @@
 # number of episodes, which take longer on a slower box (the thirty-fourth and
 # thirty-fifth draws took 122.9 and 126.8 minutes). The reserve is 2 minutes for saves
 # and exports, plus with FINAL=1 the final choice's seconds estimated from the start
-# choice's x 1.5; with fewer than 8 minutes left there is no stage 3 and the start choice
-# is the policy file, as with STAGE3=0 (benchmarks/stage3_minutes.py; the plan goes to
+# choice's x 1.5; with fewer than 8 minutes left there is no stage 3 and what it would
+# have started from is the policy file, as with STAGE3=0 (benchmarks/stage3_minutes.py; the plan goes to
 # OUT_DIR/deadline.json). It trims stage 3 only: with STAGE3=0 or UPDATES it is refused.
 # Usage: [SELECT=1 [SELECT_BUDGETS="2 5" SELECT_EPISODES="160 64"]] [POP=2] [FINAL=1 | STAGE3=0] [DEADLINE=120] [OVERRIDES="k=v ..."] [UPDATES="U1 U2 U3"] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
 # UPDATES (smoke runs and tests; 2026-11-28) stops the stages after U1, U2 and U3 updates
