@@ -105,12 +105,13 @@ DEADLINE_TYPED=${DEADLINE+typed}
 DEADLINE=${DEADLINE:-120}
 [[ $DEADLINE =~ ^[0-9]+([.][0-9]+)?$ ]] \
     || { echo "train_2h.sh: DEADLINE must be minutes >= 0 (0: none), got '$DEADLINE'" >&2; exit 2; }
+[[ $DEADLINE =~ ^0+([.]0+)?$ ]] && DEADLINE=0  # one spelling of "none" below
 if [[ $STAGE3 == 0 || -n ${UPDATES:-} ]]; then  # nothing for it to trim
-    [[ -z $DEADLINE_TYPED || $DEADLINE =~ ^0+([.]0+)?$ ]] \
+    [[ -z $DEADLINE_TYPED || $DEADLINE == 0 ]] \
         || { echo "train_2h.sh: DEADLINE trims stage 3's minutes: not with STAGE3=0 or UPDATES" >&2; exit 2; }
     DEADLINE=0
 fi
-[[ $FINAL == 0 || $SELECT == 1 || $DEADLINE =~ ^0+([.]0+)?$ ]] \
+[[ $FINAL == 0 || $SELECT == 1 || $DEADLINE == 0 ]] \
     || { echo "train_2h.sh: FINAL=1 under DEADLINE estimates the final choice's minutes from SELECT=1's start choice: type SELECT=1, or DEADLINE=0" >&2; exit 2; }
 if [[ $STAGE3 == 0 ]]; then D2=$((POP == 2 ? 68 : 70)) D3=""
 elif [[ $SELECT == 1 ]]; then D2=$((POP == 2 ? 39 : 42)) D3=$((FINAL == 1 ? 26 : 28))
@@ -221,7 +222,7 @@ if [[ $SELECT == 1 ]]; then
     NOTE="$RUN_NOTE; stage 3 started from $START, $CHOSEN_BY; $WALL_NOTE"
 fi
 WHY_NO3="with STAGE3=0"
-if [[ $STAGE3 == 1 && ! $DEADLINE =~ ^0+([.]0+)?$ ]]; then  # stage 3's minutes under it
+if [[ $STAGE3 == 1 && $DEADLINE != 0 ]]; then  # stage 3's minutes under it
     S3ARGS=(--wall "$OUT/wall.txt" --minutes "$M3" --deadline "$DEADLINE" --out "$OUT/deadline.json")
     [[ $SELECT == 1 ]] && S3ARGS+=(--select "$OUT/select.json")
     [[ $FINAL == 1 ]] && S3ARGS+=(--final --final-episodes "${FINAL_EPISODES:-64}")
