@@ -6,6 +6,9 @@ import cProfile
 import pstats
 import time
 from collections.abc import Callable
+from typing import Any
+
+import torch
 
 
 def seconds_per_call(fn: Callable[[], object], repeats: int) -> float:
@@ -28,3 +31,17 @@ def profiled_seconds(prof: cProfile.Profile,
                 if name == func and file.endswith(suffix)]
         out[label] = (sum(v[3] for v in hits), sum(v[1] for v in hits))
     return out
+
+
+def cuda_counts(events: Any) -> dict[str, float]:
+    """What a ``torch.profiler`` run (``key_averages()``) asked of the GPU: kernel
+    launches, host-device copies, synchronize calls, and the kernels' device time in ms
+    (kernels only: an operator's row repeats the device time of the kernels it launched)."""
+    return {
+        "launches": sum(e.count for e in events
+                        if e.key in ("cudaLaunchKernel", "cudaLaunchKernelExC")),
+        "copies": sum(e.count for e in events if e.key == "cudaMemcpyAsync"),
+        "syncs": sum(e.count for e in events if "Synchronize" in e.key),
+        "device_ms": sum(e.self_device_time_total for e in events
+                         if e.device_type == torch.autograd.DeviceType.CUDA) / 1000,
+    }

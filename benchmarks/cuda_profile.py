@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 import torch
+from bench_timing import cuda_counts
 from env_profile import phase_ms, steady_env
 from torch.profiler import ProfilerActivity, profile
 
@@ -55,16 +56,10 @@ def report(n_envs: int, warmup: int, steps: int, dtype: str, device: str) -> str
             _, td = env.step_and_maybe_reset(env.rand_action(td))
         torch.cuda.synchronize()
     events = tp.key_averages()
-    launches = sum(e.count for e in events if e.key in ("cudaLaunchKernel",
-                                                        "cudaLaunchKernelExC"))
-    copies = sum(e.count for e in events if e.key == "cudaMemcpyAsync")
-    syncs = sum(e.count for e in events if "Synchronize" in e.key)
-    # Kernels only: an operator's row repeats the device time of the kernels it launched.
-    device_us = sum(e.self_device_time_total for e in events
-                    if e.device_type == torch.autograd.DeviceType.CUDA)
-    lines.append(f"  torch.profiler: {launches / steps:.0f} kernel launches, "
-                 f"{copies / steps:.0f} cudaMemcpyAsync, {syncs / steps:.0f} synchronize calls, "
-                 f"{device_us / 1000 / steps:.1f} ms of device time per step")
+    n = cuda_counts(events)
+    lines.append(f"  torch.profiler: {n['launches'] / steps:.0f} kernel launches, "
+                 f"{n['copies'] / steps:.0f} cudaMemcpyAsync, {n['syncs'] / steps:.0f} "
+                 f"synchronize calls, {n['device_ms'] / steps:.1f} ms of device time per step")
     for key in ("self_cpu_time_total", "self_device_time_total"):
         lines.append(events.table(sort_by=key, row_limit=25, max_name_column_width=50))
     return "\n".join(lines)

@@ -17,6 +17,12 @@ resumed with other code at update U).
 per update of :data:`PHASES` (collection, teammates' intents and their parts, env steps,
 backward passes).
 
+``--launches`` (CUDA) runs the first timed update's collection under ``torch.profiler``
+and adds what it asked of the GPU per env step: kernel launches, host-device copies,
+synchronize calls and the kernels' device time, beside its wall time under the profiler
+(which slows the host, not the kernels): a step whose device time is a small part even
+of the unprofiled step's wall time is bound by the host.
+
 ``--ratio BASE.json OTHER.json`` prints how much faster OTHER ran than BASE (two
 ``--out`` files measured side by side), per whole update and per phase.
 
@@ -37,9 +43,10 @@ import time
 from pathlib import Path
 
 import torch
-from bench_timing import profiled_seconds
+from bench_timing import cuda_counts, profiled_seconds
 from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
+from torch.profiler import ProfilerActivity, profile
 
 import maipp_bench.train as train_mod
 from maipp_bench.algos import rollouts
@@ -99,6 +106,10 @@ def main() -> None:
     p.add_argument("--profile", action="store_true",
                    help="cProfile the timed updates: seconds and calls of PHASES (the "
                         "profiler's overhead slows them, so their speeds are not comparable)")
+    p.add_argument("--launches", action="store_true",
+                   help="CUDA: profile the first timed update's collection with "
+                        "torch.profiler (kernel launches, copies, syncs, device time per "
+                        "env step)")
     p.add_argument("--ratio", nargs=2, metavar=("BASE", "OTHER"),
                    help="two --out files: how much faster OTHER ran than BASE")
     args = p.parse_args()
@@ -120,6 +131,8 @@ def main() -> None:
         return
     with initialize_config_module("maipp_bench.conf", version_base=None):
         cfg = compose("train", overrides=args.overrides)
+    if args.launches and torch.device(cfg.device).type != "cuda":
+        p.error("--launches counts CUDA kernel launches: add device=cuda")
     keep_freed_memory()  # as the train CLI does
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
@@ -138,7 +151,17 @@ def main() -> None:
             if update == 1 and args.profile:  # the first update warms up
                 prof.enable()
             t0 = time.perf_counter()
-            batch = collector.next()
+            if update == 1 and args.launches:
+                with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as tp:
+                    batch = collector.next()
+                    torch.cuda.synchronize()
+                    wall = time.perf_counter() - t0  # before the profiler's own processing
+                launches = cuda_counts(tp.key_averages())
+                launches["profiled_wall_ms"] = 1000 * wall
+                steps = batch.shape[-1]  # env steps of the collection (each over n_envs)
+                launches = {f"{k}_per_step": v / steps for k, v in launches.items()}
+            else:
+                batch = collector.next()
             t1 = time.perf_counter()
             rows = train_mod.collected_decisions(learner, batch, cfg.algo)
             t2 = time.perf_counter()
@@ -166,6 +189,8 @@ def main() -> None:
         "collect_frames_per_s": frames / times["collect"],
         "learn_rows_per_s": passes / times["learn"],
     }
+    if args.launches:  # the profiled collection is slower: its update's times count too
+        result["collection_launches"] = launches
     if args.profile:  # seconds per timed update
         result["profile"] = {label: {"seconds": s / args.updates, "calls": n / args.updates}
                              for label, (s, n) in profiled_seconds(prof, PHASES).items()}

@@ -1634,14 +1634,40 @@ def test_snapshots_every_n_updates_need_no_evaluation(tmp_path):
         assert not (tmp_path / "bad" / "checkpoint.pt").exists()
 
 
+def _train_throughput(*args: str) -> subprocess.CompletedProcess:
+    script = Path(__file__).parents[1] / "benchmarks" / "train_throughput.py"
+    return subprocess.run([sys.executable, str(script), *args], capture_output=True,
+                          text=True, timeout=300)
+
+
+def test_train_throughput_launches_needs_cuda():
+    """--launches counts CUDA kernel launches: on the CPU it is a clear error, not zeros."""
+    proc = _train_throughput(*TINY_TRAIN, "--updates", "1", "--launches")
+    assert proc.returncode == 2 and "--launches counts CUDA kernel launches" in proc.stderr
+
+
+@pytest.mark.cuda
+def test_train_throughput_launches_counts_the_collection(tmp_path):
+    """--launches on CUDA: kernel launches and device time per env step of the profiled
+    collection, with intents in it; the kernels' time fits inside the wall time."""
+    if not torch.cuda.is_available():
+        pytest.skip("CUDA is not available")
+    out = tmp_path / "t.json"
+    proc = _train_throughput(*TINY_TRAIN, "device=cuda", "algo.intent_rollouts=2",
+                             "algo.intent_depth=2", "--updates", "1", "--launches",
+                             "--out", str(out))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    counts = json.loads(out.read_text())["collection_launches"]
+    assert counts["launches_per_step"] > 0 and counts["syncs_per_step"] >= 0
+    assert 0 < counts["device_ms_per_step"] < counts["profiled_wall_ms_per_step"]
+
+
 def test_train_throughput_profile_names_where_the_update_goes(tmp_path):
     """benchmarks/train_throughput.py --profile reports every phase it names as found in
     the profile (a renamed function would show 0 calls), the intents inside collection."""
     out = tmp_path / "t.json"
-    proc = subprocess.run(
-        [sys.executable, str(Path(__file__).parents[1] / "benchmarks" / "train_throughput.py"),
-         *TINY_TRAIN, "algo.intent_rollouts=2", "algo.intent_depth=2", "--updates", "1",
-         "--profile", "--out", str(out)], capture_output=True, text=True, timeout=300)
+    proc = _train_throughput(*TINY_TRAIN, "algo.intent_rollouts=2", "algo.intent_depth=2",
+                             "--updates", "1", "--profile", "--out", str(out))
     assert proc.returncode == 0, proc.stderr[-3000:]
     phases = json.loads(out.read_text())["profile"]
     assert all(p["calls"] > 0 for p in phases.values()), phases
