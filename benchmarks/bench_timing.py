@@ -35,7 +35,7 @@ def profiled_seconds(prof: cProfile.Profile,
 
 def cuda_counts(events: Any) -> dict[str, float]:
     """What a ``torch.profiler`` run (``key_averages()``) asked of the GPU: kernel
-    launches, host-device copies, synchronize calls, and the kernels' device time in ms
+    launches, ``cudaMemcpyAsync`` calls, synchronize calls, and the kernels' device time in ms
     (kernels only: an operator's row repeats the device time of the kernels it launched)."""
     return {
         "launches": sum(e.count for e in events

@@ -17,11 +17,12 @@ resumed with other code at update U).
 per update of :data:`PHASES` (collection, teammates' intents and their parts, env steps,
 backward passes).
 
-``--launches`` (CUDA) runs the first timed update's collection under ``torch.profiler``
-and adds what it asked of the GPU per env step: kernel launches, host-device copies,
-synchronize calls and the kernels' device time, beside its wall time under the profiler
-(which slows the host, not the kernels): a step whose device time is a small part even
-of the unprofiled step's wall time is bound by the host.
+``--launches`` (CUDA) runs one more collection after the timed updates, under
+``torch.profiler``, and adds what it asked of the GPU per env step: kernel launches,
+``cudaMemcpyAsync`` calls, synchronize calls and the kernels' device time, beside its
+wall time under the profiler (which slows the host, not the kernels): a step whose device
+time is a small part even of the unprofiled step's wall time (the timed updates'
+collection, over the same number of steps) is bound by the host.
 
 ``--ratio BASE.json OTHER.json`` prints how much faster OTHER ran than BASE (two
 ``--out`` files measured side by side), per whole update and per phase.
@@ -41,6 +42,7 @@ import json
 import os
 import time
 from pathlib import Path
+from typing import Any
 
 import torch
 from bench_timing import cuda_counts, profiled_seconds
@@ -92,6 +94,22 @@ def speedups(base: dict, other: dict) -> dict[str, float]:
             for k in SPEEDS}
 
 
+def collection_launches(collector: Any) -> dict[str, float]:
+    """What one collection asks of the GPU per env step under ``torch.profiler``
+    (:func:`bench_timing.cuda_counts`), and its wall ms per step under the profiler, from
+    its first call to the end of its kernels (the profiler's start-up and processing
+    left out)."""
+    torch.cuda.synchronize()  # the previous update's kernels are neither timed nor counted
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as tp:
+        t0 = time.perf_counter()
+        batch = collector.next()
+        torch.cuda.synchronize()
+        wall = time.perf_counter() - t0
+    counts = cuda_counts(tp.key_averages()) | {"profiled_wall_ms": 1000 * wall}
+    steps = batch.shape[-1]  # env steps of the collection: the batch is [n_envs, steps]
+    return {f"{k}_per_step": v / steps for k, v in counts.items()}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("overrides", nargs="*")
@@ -107,7 +125,7 @@ def main() -> None:
                    help="cProfile the timed updates: seconds and calls of PHASES (the "
                         "profiler's overhead slows them, so their speeds are not comparable)")
     p.add_argument("--launches", action="store_true",
-                   help="CUDA: profile the first timed update's collection with "
+                   help="CUDA: profile one more collection, after the timed updates, with "
                         "torch.profiler (kernel launches, copies, syncs, device time per "
                         "env step)")
     p.add_argument("--ratio", nargs=2, metavar=("BASE", "OTHER"),
@@ -151,17 +169,7 @@ def main() -> None:
             if update == 1 and args.profile:  # the first update warms up
                 prof.enable()
             t0 = time.perf_counter()
-            if update == 1 and args.launches:
-                with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as tp:
-                    batch = collector.next()
-                    torch.cuda.synchronize()
-                    wall = time.perf_counter() - t0  # before the profiler's own processing
-                launches = cuda_counts(tp.key_averages())
-                launches["profiled_wall_ms"] = 1000 * wall
-                steps = batch.shape[-1]  # env steps of the collection (each over n_envs)
-                launches = {f"{k}_per_step": v / steps for k, v in launches.items()}
-            else:
-                batch = collector.next()
+            batch = collector.next()
             t1 = time.perf_counter()
             rows = train_mod.collected_decisions(learner, batch, cfg.algo)
             t2 = time.perf_counter()
@@ -175,6 +183,8 @@ def main() -> None:
                 frames += batch.numel()
                 decisions += rows.numel()
     prof.disable()
+    if args.launches:  # one more collection, after the timed updates: its time is not theirs
+        launches = collection_launches(collector)
     collector.shutdown()
     total = sum(times.values())
     result = {
@@ -189,7 +199,7 @@ def main() -> None:
         "collect_frames_per_s": frames / times["collect"],
         "learn_rows_per_s": passes / times["learn"],
     }
-    if args.launches:  # the profiled collection is slower: its update's times count too
+    if args.launches:
         result["collection_launches"] = launches
     if args.profile:  # seconds per timed update
         result["profile"] = {label: {"seconds": s / args.updates, "calls": n / args.updates}
