@@ -38,7 +38,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 # Stage 3's start-up, saves and last update past its minutes, and the exports after it
-# (avg.pt, start.pt): 0.4-1.5 minutes in the sixteen POP=2 FINAL=1 draws to the thirty-eighth
+# (avg.pt, start.pt): 0.3-1.5 minutes in the seventeen POP=2 FINAL=1 draws to the thirty-ninth
 # (``--calibrate`` on every docs/cards/*_final_h2_pop2 prefix: their wall.txt between the two
 # choices, less stage 3's 26 minutes and the final choice).
 ALLOWANCE = 2.0
