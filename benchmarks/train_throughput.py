@@ -183,8 +183,8 @@ def main() -> None:
                 frames += batch.numel()
                 decisions += rows.numel()
     prof.disable()
-    if args.launches:  # one more collection, after the timed updates: its time is not theirs
-        launches = collection_launches(collector)
+    # One more collection, after the timed updates: its time is not theirs.
+    launches = collection_launches(collector) if args.launches else None
     collector.shutdown()
     total = sum(times.values())
     result = {
@@ -199,7 +199,7 @@ def main() -> None:
         "collect_frames_per_s": frames / times["collect"],
         "learn_rows_per_s": passes / times["learn"],
     }
-    if args.launches:
+    if launches is not None:
         result["collection_launches"] = launches
     if args.profile:  # seconds per timed update
         result["profile"] = {label: {"seconds": s / args.updates, "calls": n / args.updates}
