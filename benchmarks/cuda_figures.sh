@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The CUDA figures of docs/performance.md, in one call on a GPU machine:
 #   bash benchmarks/cuda_figures.sh OUT_DIR [SECTION ...]
-# Sections (default: all): check, env32, env64, profile, train, precision. Each writes JSON and a log to OUT_DIR; a
+# Sections (default: all): check, env32, env64, profile, train, precision, shape. Each writes JSON and a log to OUT_DIR; a
 # section that fails is reported and the next one still runs.
 # - check: the CUDA tests (`pytest -m cuda`: the env, every method, training on CUDA).
 # - env32, env64: benchmarks/env_throughput.py on CUDA in float32 / float64, for each E
@@ -10,6 +10,10 @@
 # - train: benchmarks/train_throughput.py on CUDA: ours at 64 and 256 envs, mappo at 64.
 # - precision: the update of benchmarks/train_gpu.sh (ours, 16 envs, TI(8, 5) intents in
 #   collection) in float32 and in bf16 (algo.precision), side by side, and their ratio.
+# - shape: the same update's 2,560 env frames as 16 envs x 160 steps (train_gpu.sh's
+#   default), 64 x 40 and 128 x 20, side by side: collection on the GPU costs about the
+#   same per env step at any width (bound by launches on the host), so fewer, wider steps
+#   should shorten an update; their ratios to the first.
 # Needs maipp_bench's dependencies importable (on a machine without network, install
 # wheels first: docs/performance.md gives the command used).
 set -u
@@ -65,6 +69,19 @@ for s in $sections; do
         done
         run precision_ratio $py benchmarks/train_throughput.py \
             --ratio "$out/train_ours_16_float32.json" "$out/train_ours_16_bf16.json" ;;
+    shape)
+        shapes=${SHAPES:-"16x160 64x40 128x20"}
+        for sh in $shapes; do
+            rm -f "$out/shape_$sh.json"
+            run "shape_$sh" $py benchmarks/train_throughput.py algo=ours device=cuda \
+                threads=1 n_envs=${sh%x*} steps_per_batch=${sh#*x} algo.intent_rollouts=8 \
+                algo.intent_depth=5 --updates 2 --out "$out/shape_$sh.json"
+        done
+        base=${shapes%% *}
+        for sh in ${shapes#* }; do
+            run "shape_ratio_$sh" $py benchmarks/train_throughput.py \
+                --ratio "$out/shape_$base.json" "$out/shape_$sh.json"
+        done ;;
     *) echo "unknown section $s" ;;
     esac
 done

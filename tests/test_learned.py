@@ -240,7 +240,8 @@ def assert_same_training(a: Path, b: Path) -> None:
     for name, tensor in a["core"].items():
         assert torch.equal(tensor, b["core"][name]), name
     strip = lambda curve: [{k: v for k, v in r.items() if k != "wall_s"} for r in curve]  # noqa: E731
-    assert strip(a["curve"]) == strip(b["curve"])
+    # as JSON, so that NaN (an update in which no episode ended) equals NaN
+    assert json.dumps(strip(a["curve"])) == json.dumps(strip(b["curve"]))
 
 
 @pytest.mark.parametrize("intents", [0, 2])
@@ -257,6 +258,42 @@ def test_killed_and_resumed_training_continues_the_same_curve(tmp_path, intents)
     assert_same_training(full, resumed)
     lines = (part.parent / "curve.jsonl").read_text().splitlines()
     assert len(lines) == 3
+
+
+def test_reset_every_runs_episodes_on_between_fresh_starts(tmp_path):
+    """With reset_every=N the envs start fresh episodes every N updates and run on in
+    between: short batches then still reach episodes' ends (more of them end than when
+    every update restarts them), the first update is the default's, a run resumed from a
+    checkpoint (which falls on a fresh start) continues the same curve, and cut episodes
+    get a warning."""
+    from maipp_bench.train import train
+
+    short = [*TINY_TRAIN, "steps_per_batch=6", "checkpoint_every=2"]
+    with pytest.warns(UserWarning, match="most episodes were cut before their end"):
+        every = train(compose_train(*short, "total_updates=4"), tmp_path / "every")
+    run = [*short, "reset_every=2"]
+    full = train(compose_train(*run, "total_updates=4"), tmp_path / "full")
+    curve_every = torch.load(every, weights_only=False)["curve"]
+    curve_on = torch.load(full, weights_only=False)["curve"]
+    assert curve_on[0] | {"wall_s": 0} == curve_every[0] | {"wall_s": 0}
+    assert curve_on[1]["reward_per_decision"] != curve_every[1]["reward_per_decision"]
+    assert curve_on[-1]["episodes"] > curve_every[-1]["episodes"]
+    part = train(compose_train(*run, "total_updates=2"), tmp_path / "part")
+    resumed = train(compose_train(*run, "total_updates=4", f"resume={part}"), tmp_path / "x")
+    assert_same_training(full, resumed)
+
+
+@pytest.mark.parametrize("fields, match", [
+    (["reset_every=0"], "reset_every=0: must be >= 1"),
+    (["reset_every=2", "checkpoint_every=3"],
+     "checkpoint_every=3 must be a multiple of reset_every=2"),
+])
+def test_bad_reset_every_is_a_clear_error(tmp_path, fields, match):
+    from maipp_bench.train import train
+
+    with pytest.raises(ValueError, match=match):
+        train(compose_train(*TINY_TRAIN, *fields), tmp_path)
+    assert not (tmp_path / "checkpoint.pt").exists()  # refused before training
 
 
 def test_resume_alone_continues_the_run_as_it_was_started(tmp_path, capsys):
@@ -550,6 +587,8 @@ def test_bad_overrides_get_clear_errors(override, message, tmp_path):
       for lr in ("0", "0e-5", "-1e-4", "fast")],
     *[("train_gpu.sh", m, "MINUTES must be a positive number") for m in (["0"], ["-1"], ["x"])],
     *[("train_gpu.sh", ["6", n], "N_ENVS must be a positive integer") for n in ("0", "1.5")],
+    *[("train_gpu.sh", ["6", n], "N_ENVS must divide 2560 frames per update into steps "
+       "that divide 160") for n in ("48", "5120")],
     ("train_gpu.sh", "x", "SEED must be an integer")])
 def test_training_scripts_reject_bad_arguments_before_training(script, args, message,
                                                                 tmp_path):
@@ -562,6 +601,21 @@ def test_training_scripts_reject_bad_arguments_before_training(script, args, mes
     assert proc.returncode == 2
     assert message in proc.stderr
     assert not out.exists()
+
+
+def test_train_gpu_keeps_the_frames_per_update_and_the_steps_between_fresh_starts(tmp_path):
+    """train_gpu.sh at any width collects 2,560 frames an update and starts fresh episodes
+    every 160 env steps, as 16 envs x 160 steps do (a CPU smoke run of the tiny task)."""
+    script = Path(__file__).parents[1] / "benchmarks" / "train_gpu.sh"
+    proc = subprocess.run(["bash", str(script), str(tmp_path), "0", "0.001", "64",
+                           "device=cpu", "env=tiny", *TINY_TRAIN[5:], "algo.epochs=1",
+                           "algo.intent_rollouts=2", "algo.intent_depth=2"],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    cfg = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)["config"]
+    assert (cfg["n_envs"], cfg["steps_per_batch"], cfg["reset_every"],
+            cfg["checkpoint_every"]) == (64, 40, 4, 4)
+    assert (tmp_path / "policy.pt").exists()
 
 
 @pytest.mark.parametrize(("variable", "value", "message"), [
