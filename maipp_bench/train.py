@@ -236,7 +236,7 @@ def learn(learner: Learner, optim: torch.optim.Optimizer, buffer: ReplayBuffer,
     learner.core.train()
     buffer.empty()
     buffer.extend(rows)
-    stats: dict[str, list[float]] = {}
+    kept: dict[str, list[torch.Tensor]] = {}
     steps = 0
     for minibatch in (mb for _ in range(algo.epochs) for mb in buffer):
         out = learner.loss(minibatch)
@@ -249,7 +249,10 @@ def learn(learner: Learner, optim: torch.optim.Optimizer, buffer: ReplayBuffer,
         optim.step()
         steps += 1
         for k, v in out.items():
-            stats.setdefault(k, []).append(float(v.detach().mean()))
+            kept.setdefault(k, []).append(v.detach().mean())
+    # Read back once per update, not once per term and minibatch: on a GPU each read
+    # waits for the device, so the host could not queue the next minibatch meanwhile.
+    stats = {k: torch.stack(v).tolist() for k, v in kept.items()}
     stats["minibatches"] = [float(steps)]
     return stats
 
