@@ -5,7 +5,10 @@ field's mean over windows of each curve: windows of updates, or of env frames
 
 Curves are run folders, ``curve.jsonl`` files or checkpoint cards, as
 ``python -m maipp_bench.curves`` reads them. ``--key update_s`` is derived: the seconds
-of each update (the step of the cumulative ``wall_s``).
+of each update (the step of the cumulative ``wall_s``). Fields that are means over the
+episodes that ended in an update (``trace_final``, ``traps``) are averaged weighted by
+those episodes, so that updates in which none ended (NaN: with ``reset_every`` > 1 the
+first updates after a fresh start) count nothing.
 
 Usage:
     python benchmarks/curve_compare.py docs/cards/ours_2h_intent_seed2.json \
@@ -17,6 +20,7 @@ Usage:
 from __future__ import annotations
 
 import argparse
+import math
 
 from maipp_bench.curves import read_curve
 
@@ -28,17 +32,30 @@ def values(rows: list[dict], key: str) -> list[float]:
     return [r[key] for r in rows]
 
 
+PER_EPISODE = ("trace_final", "traps")  # means over the episodes ended in the update
+
+
+def weights(rows: list[dict], key: str) -> list[float]:
+    """Each update's weight in a window mean: the episodes that ended in it for
+    :data:`PER_EPISODE` fields (the step of the cumulative ``episodes``), else 1."""
+    if key not in PER_EPISODE:
+        return [1.0] * len(rows)
+    ended = [0] + [r["episodes"] for r in rows]
+    return [float(b - a) for a, b in zip(ended, ended[1:])]
+
+
 def window_means(rows: list[dict], key: str, window: int, frames_bin: int) -> dict[str, float]:
     """Mean of ``key`` per ``window`` updates, or per ``frames_bin`` env frames if given."""
-    groups: dict[str, list[float]] = {}
-    for i, (row, v) in enumerate(zip(rows, values(rows, key))):
+    groups: dict[str, list[tuple[float, float]]] = {}
+    for i, (row, v, w) in enumerate(zip(rows, values(rows, key), weights(rows, key))):
         if frames_bin:
             end = ((row["frames"] - 1) // frames_bin + 1) * frames_bin
             label = f"<={end // 1000}k"
         else:
             label = f"{i // window * window + 1}-"
-        groups.setdefault(label, []).append(v)
-    return {label: sum(vs) / len(vs) for label, vs in groups.items()}
+        groups.setdefault(label, []).append((v, w))
+    return {label: (sum(v * w for v, w in vw if w) / total if (total := sum(w for _, w in vw))
+                    else math.nan) for label, vw in groups.items()}
 
 
 def main() -> None:

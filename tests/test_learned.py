@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -1727,3 +1728,20 @@ def test_train_throughput_profile_names_where_the_update_goes(tmp_path):
     assert all(p["calls"] > 0 for p in phases.values()), phases
     seconds = [p["seconds"] for p in phases.values()]
     assert seconds[1] <= seconds[0]  # teammates' intents are part of collection
+
+
+def test_curve_compare_weights_per_episode_fields_by_the_episodes_that_ended(monkeypatch):
+    """benchmarks/curve_compare.py: a per-episode mean (trace_final) counts each update by
+    the episodes that ended in it, so updates in which none ended (NaN, as after a fresh
+    start with reset_every > 1) count nothing; other fields are plain means."""
+    monkeypatch.syspath_prepend(str(Path(__file__).parents[1] / "benchmarks"))
+    from curve_compare import window_means
+
+    rows = [{"episodes": 0, "trace_final": math.nan, "reward_per_decision": 0.1, "frames": 1},
+            {"episodes": 3, "trace_final": 10.0, "reward_per_decision": 0.3, "frames": 2},
+            {"episodes": 4, "trace_final": 30.0, "reward_per_decision": 0.5, "frames": 3},
+            {"episodes": 4, "trace_final": math.nan, "reward_per_decision": 0.7, "frames": 4}]
+    assert window_means(rows, "trace_final", 3, 0)["1-"] == pytest.approx(15.0)  # (3*10+30)/4
+    assert math.isnan(window_means(rows, "trace_final", 3, 0)["4-"])
+    assert window_means(rows, "reward_per_decision", 2, 0) == pytest.approx(
+        {"1-": 0.2, "3-": 0.6})
