@@ -613,8 +613,9 @@ def train(cfg: Any, run_dir: Path) -> Path:
         rows = collected_decisions(learner, batch, cfg.algo)
         done = batch.get(("next", "done")).squeeze(-1)
         frames += batch.numel()
-        episodes += int(done.sum())
-        since_reset += int(done.sum())
+        ended = int(done.sum())
+        episodes += ended
+        since_reset += ended
         if (update + 1) % cfg.reset_every == 0 and since_reset < cfg.n_envs and not cut_warned:
             cut_warned = True  # most envs never reached an episode's end before the reset
             warnings.warn(
