@@ -11,7 +11,7 @@
 # - precision: the update of benchmarks/train_gpu.sh (ours, 16 envs, TI(8, 5) intents in
 #   collection) in float32 and in bf16 (algo.precision), side by side, and their ratio.
 # - shape: the same update's 2,560 env frames as 16 envs x 160 steps (train_gpu.sh's
-#   default), 64 x 40 and 128 x 20, side by side: collection on the GPU costs about the
+#   width until 2026-12-04), 64 x 40 and 128 x 20 (its default since), side by side: collection on the GPU costs about the
 #   same per env step at any width (bound by launches on the host), so fewer, wider steps
 #   should shorten an update; their ratios to the first.
 # Needs maipp_bench's dependencies importable (on a machine without network, install

@@ -10,7 +10,7 @@
 # On the GPU an env step costs about the same at any width (bound by launches on the
 # host), so the update's frames are cheapest as few wide steps: 128 envs x 20 steps took
 # 2.3 s an update against 10.4 s for 16 x 160 (2026-12-04, H200, docs/performance.md
-# "Wide, short batches"). The frames per update and the steps between fresh starts are
+# "A fifth lent GPU: wide, short batches"). The frames per update and the steps between fresh starts are
 # what 16 x 160 collects (PPO's progress comes from the number of updates: the first GPU
 # run's 128 x 160 = 20,480-frame updates learned far less per frame, 2026-11-26,
 # docs/results.md "The recipe on one lent GPU"). N_ENVS=16 is the recipe of the runs of
