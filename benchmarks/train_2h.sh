@@ -58,7 +58,13 @@
 # choice's x 1.5; with fewer than 8 minutes left there is no stage 3 and what it would
 # have started from is the policy file, as with STAGE3=0 (benchmarks/stage3_minutes.py; the plan goes to
 # OUT_DIR/deadline.json). It trims stage 3 only: with STAGE3=0 or UPDATES it is refused.
-# Usage: [SELECT=1 [SELECT_BUDGETS="2 5" SELECT_EPISODES="160 64"]] [POP=2] [FINAL=1 | STAGE3=0] [DEADLINE=120] [OVERRIDES="k=v ..."] [UPDATES="U1 U2 U3"] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
+# With WIDE=W (2026-12-04; default 1, every draw before), every stage collects the same
+# frames an update as W times the envs for 1/W of the steps (stage 1: 8W envs x 160/W
+# steps, stages 2-3: 16W x 160/W), with reset_every=W (and checkpoint_every=W), so the envs
+# still start fresh episodes every 160 env steps: at equal frames, updates and minutes on
+# this box, 128 x 20 with reset_every=8 learned far more than 16 x 160 in two seed pairs
+# (docs/results.md, "A fifth lent GPU"). W must divide 160.
+# Usage: [WIDE=8] [SELECT=1 [SELECT_BUDGETS="2 5" SELECT_EPISODES="160 64"]] [POP=2] [FINAL=1 | STAGE3=0] [DEADLINE=120] [OVERRIDES="k=v ..."] [UPDATES="U1 U2 U3"] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
 # UPDATES (smoke runs and tests; 2026-11-28) stops the stages after U1, U2 and U3 updates
 # instead of M1, M2 and M3 minutes, so that a busy machine makes the same run (stage 3
 # needs 5 updates for a snapshot to average); with STAGE3=0 it is "U1 U2", and M3 and LR3
@@ -129,6 +135,14 @@ sys.exit(len(set(b)) != len(b))" "${SELECT_BS[@]}" \
     || { echo "train_2h.sh: SELECT_BUDGETS must name each budget once, got '$SELECT_BUDGETS'" >&2; exit 2; }
 ((${#SELECT_EPS[@]} == 1 || ${#SELECT_EPS[@]} == ${#SELECT_BS[@]})) \
     || { echo "train_2h.sh: SELECT_EPISODES takes one count or one per budget of SELECT_BUDGETS ('$SELECT_BUDGETS'), got '$SELECT_EPISODES'" >&2; exit 2; }
+WIDE=${WIDE:-1}
+[[ $WIDE =~ ^[1-9][0-9]*$ ]] && ((160 % WIDE == 0)) \
+    || { echo "train_2h.sh: WIDE must be a positive integer that divides 160 (e.g. 1, 2, 4, 8), got '$WIDE'" >&2; exit 2; }
+SHAPE1=() SHAPE23=(n_envs=16)  # stage 1: the config's 8 envs x 160 steps
+if ((WIDE > 1)); then
+    SHAPE_W=(steps_per_batch=$((160 / WIDE)) reset_every="$WIDE" checkpoint_every="$WIDE")
+    SHAPE1=(n_envs=$((8 * WIDE)) "${SHAPE_W[@]}") SHAPE23=(n_envs=$((16 * WIDE)) "${SHAPE_W[@]}")
+fi
 M1=${3:-38}
 M2=${4:-$D2}
 M3=${5:-$D3}
@@ -179,13 +193,13 @@ echo "start $(date -u +%FT%TZ)" | tee "$OUT/wall.txt"
 # not hold inside a function called from an || list)
 stages12() {
     local dir=$1 seed=$2 seed2=$3 threads=$4
-    $TRAIN seed="$seed" algo.intent_rollouts=4 algo.intent_depth=5 "${L1[@]}" \
+    $TRAIN seed="$seed" algo.intent_rollouts=4 algo.intent_depth=5 "${L1[@]}" "${SHAPE1[@]}" \
         eval_every=0 threads="$threads" hydra.run.dir="$dir/stage1" "${EXTRA[@]}" || return
     echo "stage1 done $(date -u +%FT%TZ) $dir" | tee -a "$OUT/wall.txt"
     mkdir -p "$dir/stage2" && cp "$dir/stage1/checkpoint.pt" "$dir/stage2/checkpoint.pt" \
         || return
     $TRAIN resume="$dir/stage2/checkpoint.pt" seed="$seed2" algo.intent_rollouts=4 \
-        algo.intent_depth=5 n_envs=16 algo.epochs=4 algo.target_kl=0.02 "${L2[@]}" \
+        algo.intent_depth=5 "${SHAPE23[@]}" algo.epochs=4 algo.target_kl=0.02 "${L2[@]}" \
         eval_every=0 threads="$threads" "${S2[@]}" hydra.run.dir="$dir/stage2" "${EXTRA[@]}" \
         || return
     echo "stage2 done $(date -u +%FT%TZ) $dir" | tee -a "$OUT/wall.txt"
@@ -238,7 +252,7 @@ if [[ $STAGE3 == 0 ]]; then  # the start choice's pick is the policy file
     echo "final $OUT/final.pt $(date -u +%FT%TZ)" | tee -a "$OUT/wall.txt"
 else
     $TRAIN init="$START" seed="$((SEED + 2))" algo.lr="$LR3" threads=2 \
-        algo.intent_rollouts=8 algo.intent_depth=5 n_envs=16 algo.epochs=4 algo.target_kl=0.02 \
+        algo.intent_rollouts=8 algo.intent_depth=5 "${SHAPE23[@]}" algo.epochs=4 algo.target_kl=0.02 \
         "${L3[@]}" eval_every=0 keep_snapshots=true snapshot_every=5 \
         hydra.run.dir="$OUT/stage3" "${EXTRA[@]}"
     LAST=$( (ls "$OUT/stage3/snapshots" 2>/dev/null || true) | sed -n 's/update_0*\([0-9]*\)\.pt/\1/p' | sort -n | tail -1)

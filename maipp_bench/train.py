@@ -101,9 +101,10 @@ class TrainConfig:
     # across the N updates in between, so a wide, short batch (n_envs=128
     # steps_per_batch=20 reset_every=8) still sees whole episodes: on a GPU, where an env
     # step costs about the same at any width, its update is 4.4x faster than 16 envs x 160
-    # steps (docs/performance.md). checkpoint_every must be a multiple of it, so a resumed
-    # run continues the same curve (a max_minutes stop between fresh starts restarts
-    # the episodes when resumed).
+    # steps (docs/performance.md). The intervals (and checkpoint_every's) count from the
+    # update a process starts at, and checkpoint_every must be a multiple of it, so every
+    # checkpoint falls on a fresh start and a resumed run continues the same curve (a
+    # resume from a max_minutes stop starts fresh episodes there and counts from it).
     reset_every: int = 1
     total_updates: int = 200
     max_minutes: float = 0.0  # > 0: stop (after a checkpoint) once this much wall time is used
@@ -599,12 +600,14 @@ def train(cfg: Any, run_dir: Path) -> Path:
     since_reset, cut_warned = 0, False  # episodes ended since the envs' fresh start
     for update in range(start, cfg.total_updates):
         t0 = time.perf_counter()
-        # --- collect: every reset_every updates (and when a process starts or resumes),
-        # every env starts fresh episodes from a seed of (seed, update); in between they
-        # run on. The policy's sampling is seeded every update.
+        # --- collect: every reset_every updates counted from this process's start (a
+        # checkpoint's update, or a max_minutes stop's), every env starts fresh episodes
+        # from a seed of (seed, update); in between they run on. The policy's sampling is
+        # seeded every update.
         useed = int(rng.derive(rng.seed_key(cfg.seed), update)) & (2**62 - 1)
         torch.manual_seed(useed)
-        if update == start or update % cfg.reset_every == 0:
+        done_here = update + 1 - start  # updates this process will have made
+        if (done_here - 1) % cfg.reset_every == 0:
             env.set_seed(useed)
             collector.reset()
             since_reset = 0
@@ -616,7 +619,7 @@ def train(cfg: Any, run_dir: Path) -> Path:
         ended = int(done.sum())
         episodes += ended
         since_reset += ended
-        if (update + 1) % cfg.reset_every == 0 and since_reset < cfg.n_envs and not cut_warned:
+        if done_here % cfg.reset_every == 0 and since_reset < cfg.n_envs and not cut_warned:
             cut_warned = True  # most envs never reached an episode's end before the reset
             warnings.warn(
                 f"update {update + 1}: {since_reset} episodes ended in {cfg.n_envs} envs "
@@ -657,8 +660,8 @@ def train(cfg: Any, run_dir: Path) -> Path:
                         reward=f"{row['reward_per_decision']:.3f}",
                         trace=f"{row['trace_final']:.1f}")
         out_of_time = cfg.max_minutes > 0 and wall >= 60 * cfg.max_minutes
-        if (update + 1) % cfg.checkpoint_every == 0 or update + 1 == cfg.total_updates \
-                or out_of_time:
+        if done_here % cfg.checkpoint_every == 0 or update + 1 == cfg.total_updates \
+                or out_of_time:  # on a fresh start: counted from this process's start
             save(update + 1)
         if out_of_time:
             break

@@ -284,6 +284,31 @@ def test_reset_every_runs_episodes_on_between_fresh_starts(tmp_path):
     assert_same_training(full, resumed)
 
 
+def test_reset_intervals_count_from_where_a_resumed_run_starts(tmp_path):
+    """A run stopped between fresh starts (here by total_updates=3 with reset_every=2; in
+    practice by max_minutes) resumes with fresh episodes and counts its intervals and
+    checkpoints from there: its first interval is a whole one (no cut episodes), and a kill
+    and resume after that continues the same curve as the uninterrupted resume."""
+    import shutil
+    import warnings
+
+    from maipp_bench.train import train
+
+    run = [*TINY_TRAIN, "steps_per_batch=6", "checkpoint_every=2", "reset_every=2"]
+    stopped = train(compose_train(*run, "total_updates=3"), tmp_path / "a").parent
+    shutil.copytree(stopped, tmp_path / "b")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a cut-episodes warning would fail here
+        full = train(compose_train(*run, "total_updates=7", f"resume={stopped / 'checkpoint.pt'}"),
+                     tmp_path / "x")
+    killed = tmp_path / "b" / "checkpoint.pt"  # its next checkpoint: update 3 + 2
+    assert train(compose_train(*run, "total_updates=5", f"resume={killed}"), tmp_path / "y") \
+        == killed
+    assert torch.load(killed, weights_only=False)["update"] == 5
+    assert_same_training(full, train(compose_train(*run, "total_updates=7", f"resume={killed}"),
+                                     tmp_path / "z"))
+
+
 @pytest.mark.parametrize("fields, match", [
     (["reset_every=0"], "reset_every=0: must be >= 1"),
     (["reset_every=2", "checkpoint_every=3"],
@@ -632,6 +657,8 @@ def test_train_gpu_keeps_the_frames_per_update_and_the_steps_between_fresh_start
     ("UPDATES", "1 2", "UPDATES must be three positive integers (stages 1, 2 and 3), got '1 2'"),
     ("UPDATES", "1 0 5", "UPDATES must be three positive integers"),
     ("STAGE3", "2", "STAGE3 must be 0 or 1, got '2'"),
+    ("WIDE", "3", "WIDE must be a positive integer that divides 160 (e.g. 1, 2, 4, 8), got '3'"),
+    ("WIDE", "0", "WIDE must be a positive integer that divides 160"),
     ("STAGE3", "0", "STAGE3=0 needs SELECT=1"),
     ("DEADLINE", "soon", "DEADLINE must be minutes >= 0 (0: none), got 'soon'"),
     ("DEADLINE", "-5", "DEADLINE must be minutes >= 0"),
@@ -762,6 +789,26 @@ def test_train_2h_without_stage3_ships_the_start_choice(tmp_path):
     ours = torch.load(out / "final.pt", weights_only=False)["core"]
     assert theirs.keys() == ours.keys()
     assert all(torch.equal(ours[k], theirs[k]) for k in theirs)
+
+
+def test_train_2h_wide_keeps_each_stage_s_frames_and_steps_between_fresh_starts(tmp_path):
+    """benchmarks/train_2h.sh with WIDE=4: stage 1 runs 8 x 4 envs and stage 2 16 x 4, each
+    for 160 / 4 steps an update with fresh episodes every 4 updates (160 env steps, as
+    without it), and checkpoints on those fresh starts."""
+    out = tmp_path / "run"
+    tiny = [o for o in TINY_TRAIN if not o.startswith(("n_envs=", "steps_per_batch="))]
+    proc = subprocess.run(
+        ["bash", str(Path(__file__).parents[1] / "benchmarks" / "train_2h.sh"), str(out), "3"],
+        capture_output=True, text=True, timeout=600,
+        env={**os.environ, "SELECT": "1", "STAGE3": "0", "SELECT_EPISODES": "2", "WIDE": "4",
+             "UPDATES": "1 1",
+             "OVERRIDES": " ".join([*tiny, "algo.intent_rollouts=2", "algo.intent_depth=2"])})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    for stage, n_envs in (("stage1", 32), ("stage2", 64)):
+        cfg = torch.load(out / stage / "checkpoint.pt", weights_only=False)["config"]
+        assert (cfg["n_envs"], cfg["steps_per_batch"], cfg["reset_every"],
+                cfg["checkpoint_every"]) == (n_envs, 40, 4, 4), stage
+    assert (out / "final.pt").exists()
 
 
 def test_train_2h_refuses_a_deadline_with_updates(tmp_path):
