@@ -12,7 +12,8 @@ With ``--plot PATH``, a figure of every draw's two deciding margins, the table's
 minus ``sga_rrt_0.3_0.4`` and B = 5 minus ``catnipp_ti`` (each with two standard errors),
 coloured by whether the draw met the target: where the draws miss, at a glance.
 
-Families, from the switches in the table's recipe cell (its first code span): ``STAGE3=0``
+Families, from the switches in the table's recipe cell (its first code span): ``WIDE=8``
+(every stage's frames as 8x the envs for 1/8 of the steps), ``STAGE3=0``
 (no stage 3: its minutes go to stage 2), ``POP=2`` (two seeds side by side, the better kept
 on held-out episodes), ``SELECT=1 FINAL=1``, ``SELECT=1`` and ``fixed`` (no switches, the
 first draws); "all" pools them. A family whose draws trained in both precisions (the
@@ -30,7 +31,9 @@ from pathlib import Path
 from draw_signals import outcomes, switches
 from scipy.stats import beta
 
-FAMILIES = ("STAGE3=0", "POP=2", "SELECT=1 FINAL=1", "SELECT=1")  # tested in order
+# tested in order: WIDE=8 (every stage 8x the envs for 1/8 of the steps) is a family of
+# its own, not counted with the POP=2 draws whose switches it also has
+FAMILIES = ("WIDE=8", "STAGE3=0", "POP=2", "SELECT=1 FINAL=1", "SELECT=1")
 
 
 def family(recipe: str) -> str:
