@@ -297,10 +297,11 @@ def test_reset_intervals_count_from_where_a_resumed_run_starts(tmp_path):
     run = [*TINY_TRAIN, "steps_per_batch=6", "checkpoint_every=2", "reset_every=2"]
     stopped = train(compose_train(*run, "total_updates=3"), tmp_path / "a").parent
     shutil.copytree(stopped, tmp_path / "b")
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")  # a cut-episodes warning would fail here
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         full = train(compose_train(*run, "total_updates=7", f"resume={stopped / 'checkpoint.pt'}"),
                      tmp_path / "x")
+    assert not [w for w in caught if "most episodes were cut" in str(w.message)]
     killed = tmp_path / "b" / "checkpoint.pt"  # its next checkpoint: update 3 + 2
     assert train(compose_train(*run, "total_updates=5", f"resume={killed}"), tmp_path / "y") \
         == killed
