@@ -762,6 +762,19 @@ def test_train_2h_runs_its_stages_and_the_choices_end_to_end(tmp_path, pop):
     assert "chosen on held-out episodes at B = 2 4 5 (" in card["selected_by"]
     start = json.loads((out / "start.json").read_text())
     assert start["selected_update"] == choice["chosen"]["update"]
+    # benchmarks/ship_draw.py ships the finished run under a card prefix: the policy file,
+    # both choices, the curves, the stamps and the set-aside candidate's card
+    cards = tmp_path / "cards"
+    cards.mkdir()
+    proc = _ship_draw(out, cards / "draw")
+    assert proc.returncode == 0, proc.stderr
+    aside = "_stage3_avg.json" if chosen.name == "start.pt" else "_stage3_start.json"
+    assert {p.name.removeprefix("draw") for p in cards.iterdir()} == {
+        ".pt", ".json", "_choice.json", "_start_choice.json", "_stages12.jsonl", "_wall.txt",
+        aside, *["_m1_stages12.jsonl"] * (members - 1)}
+    assert (cards / "draw.pt").read_bytes() == (out / "final.pt").read_bytes()
+    set_aside = "avg.json" if chosen.name == "start.pt" else "start.json"
+    assert (cards / f"draw{aside}").read_text() == (out / set_aside).read_text()
 
 
 def test_train_2h_without_stage3_ships_the_start_choice(tmp_path):
@@ -889,6 +902,62 @@ def test_stage3_minutes_bad_input_is_a_clear_error(tmp_path, args, wall, message
     proc = _stage3_minutes(tmp_path, *args, wall=wall)
     assert proc.returncode == 2
     assert message in proc.stderr
+
+
+def _ship_draw(run, prefix, *args):
+    return subprocess.run(
+        [sys.executable, str(Path(__file__).parents[1] / "benchmarks" / "ship_draw.py"),
+         str(run), str(prefix), *args], capture_output=True, text=True, timeout=60)
+
+
+def test_ship_draw_refuses_what_it_cannot_ship(tmp_path):
+    """benchmarks/ship_draw.py: an unfinished run, a final.pt that is not the candidate the
+    final choice kept, a board never scored and a prefix already shipped are clear errors,
+    and nothing is copied."""
+    run, cards = tmp_path / "run", tmp_path / "cards"
+    (run / "stage2").mkdir(parents=True)
+    cards.mkdir()
+    for name in ("final.json", "stage2/curve.jsonl", "start.json", "avg.json"):
+        (run / name).write_text("{}")
+    (run / "final.pt").write_bytes(b"average")
+    (run / "avg.pt").write_bytes(b"average")
+    (run / "start.pt").write_bytes(b"start")
+    (run / "wall.txt").write_text("start 2026-12-05T02:28:28Z\n")
+    proc = _ship_draw(run, cards / "draw")
+    assert proc.returncode == 2 and "not a finished train_2h.sh run" in proc.stderr
+    (run / "wall.txt").write_text("start 2026-12-05T02:28:28Z\nend 2026-12-05T04:24:00Z\n")
+    (run / "final_select.json").write_text(json.dumps({"chosen": {"path": "run/start.pt"}}))
+    proc = _ship_draw(run, cards / "draw")
+    assert proc.returncode == 2 and "final.pt is not the start.pt that" in proc.stderr
+    (run / "final_select.json").write_text(json.dumps({"chosen": {"path": "run/avg.pt"}}))
+    proc = _ship_draw(run, cards / "draw", "--board", str(tmp_path / "boards"))
+    assert proc.returncode == 2 and "risk_aware.json is missing: score the run" in proc.stderr
+    assert not any(cards.iterdir())
+    assert _ship_draw(run, cards / "draw").returncode == 0
+    assert sorted(p.name for p in cards.iterdir()) == [
+        "draw.json", "draw.pt", "draw_choice.json", "draw_stage3_start.json",
+        "draw_stages12.jsonl", "draw_wall.txt"]
+    proc = _ship_draw(run, cards / "draw")
+    assert proc.returncode == 2 and "6 files are already there" in proc.stderr
+    assert _ship_draw(run, cards / "draw", "--force").returncode == 0
+
+
+def test_ship_draw_without_the_final_choice_ships_stage3_s_average(tmp_path):
+    """Without FINAL=1 (and with stage 3) train_2h.sh's policy file is avg.pt: that is
+    what ships as the prefix's .pt, with no choice and no set-aside card."""
+    run, cards = tmp_path / "run", tmp_path / "cards"
+    (run / "stage2").mkdir(parents=True)
+    cards.mkdir()
+    (run / "stage2" / "curve.jsonl").write_text("{}")
+    (run / "avg.pt").write_bytes(b"average")
+    (run / "avg.json").write_text('{"averaged_updates": [5]}')
+    (run / "wall.txt").write_text("start 2026-12-05T02:28:28Z\nend 2026-12-05T04:24:00Z\n")
+    proc = _ship_draw(run, cards / "draw")
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(p.name for p in cards.iterdir()) == [
+        "draw.json", "draw.pt", "draw_stages12.jsonl", "draw_wall.txt"]
+    assert (cards / "draw.pt").read_bytes() == b"average"
+    assert (cards / "draw.json").read_text() == (run / "avg.json").read_text()
 
 
 def test_final_choice_refuses_a_run_it_cannot_read(tmp_path):

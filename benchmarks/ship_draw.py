@@ -1,0 +1,119 @@
+"""Ship a finished ``benchmarks/train_2h.sh`` draw into ``docs/cards/`` under one prefix.
+
+A two-hour draw is documented by a fixed set of files, each named after the card prefix
+(for example ``docs/cards/ours_2h_intent_seed39_bf16_final_h2_pop2_wide8``):
+
+    PREFIX.pt / PREFIX.json          the policy file and its card (OUT/final.pt, or without
+                                     FINAL=1 stage 3's average OUT/avg.pt)
+    PREFIX_choice.json               FINAL=1's choice between stage 3's start and average
+    PREFIX_start_choice.json         SELECT=1's choice of stage 3's start
+    PREFIX_deadline.json             DEADLINE's plan for stage 3's minutes
+    PREFIX_stages12.jsonl            the main member's stage 1-2 curve
+    PREFIX_m1_stages12.jsonl         POP=2: the second member's stage 1-2 curve
+    PREFIX_wall.txt                  the wall-clock stamps
+    PREFIX_stage3_start.json         FINAL=1: the card of the candidate the final choice
+      or PREFIX_stage3_avg.json        set aside (the start's, or the average's)
+    PREFIX_board/risk_aware.json     with --board: the protocol's board of the policy file
+
+Files a switch did not make (no FINAL, no DEADLINE, POP=1) are left out; the others must
+be there. The run must be finished (an ``end`` stamp in its wall.txt), and the kept
+candidate is read from final_select.json and checked byte for byte against final.pt, so
+that a card never names the wrong network. Existing files under the prefix are an error
+unless ``--force``.
+
+Usage:
+    python benchmarks/ship_draw.py outputs/h42 \\
+        docs/cards/ours_2h_intent_seed39_bf16_final_h2_pop2_wide8 --board outputs/h42_boards
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+from pathlib import Path
+
+SUITE = "risk_aware"
+# (file in the run, suffix after the prefix, made only by a switch)
+FILES = (
+    ("final_select.json", "_choice.json", True),  # FINAL=1
+    ("select.json", "_start_choice.json", True),  # SELECT=1
+    ("deadline.json", "_deadline.json", True),  # DEADLINE
+    ("stage2/curve.jsonl", "_stages12.jsonl", False),
+    ("m1/stage2/curve.jsonl", "_m1_stages12.jsonl", True),  # POP=2
+    ("wall.txt", "_wall.txt", False),
+)
+# FINAL=1's candidates (benchmarks/final_choice.sh): the one not kept ships its card.
+SET_ASIDE = {"start.pt": ("avg.json", "_stage3_avg.json"),
+             "avg.pt": ("start.json", "_stage3_start.json")}
+
+
+class DrawError(ValueError):
+    """A run folder or prefix that cannot be shipped as it stands."""
+
+
+def plan(run: Path, prefix: Path, board: Path | None = None) -> list[tuple[Path, Path]]:
+    """The (source, destination) pairs that ship ``run`` under ``prefix``; raises
+    :class:`DrawError` on an unfinished run, a missing file or an inconsistent choice."""
+    wall = run / "wall.txt"
+    if not wall.is_file() or not any(line.startswith("end ")
+                                     for line in wall.read_text().splitlines()):
+        raise DrawError(f"{run} is not a finished train_2h.sh run (no 'end' line in {wall})")
+    # the policy file: final.pt, or without FINAL=1 (and with stage 3) stage 3's average
+    policy = "final" if (run / "final.pt").is_file() or not (run / "avg.pt").is_file() else "avg"
+    files = [(f"{policy}.pt", ".pt", False), (f"{policy}.json", ".json", False), *FILES]
+    pairs = []
+    for name, suffix, optional in files:
+        source = run / name
+        if source.is_file():
+            pairs.append((source, prefix.with_name(prefix.name + suffix)))
+        elif not optional:
+            raise DrawError(f"{source} is missing: every train_2h.sh run writes it")
+    final = run / "final_select.json"
+    if final.is_file():
+        kept = Path(json.loads(final.read_text())["chosen"]["path"]).name
+        if kept not in SET_ASIDE:
+            raise DrawError(f"{final} kept {kept}, not one of {sorted(SET_ASIDE)}")
+        if (run / kept).read_bytes() != (run / "final.pt").read_bytes():
+            raise DrawError(f"{run / 'final.pt'} is not the {kept} that {final} kept")
+        card, suffix = SET_ASIDE[kept]
+        if not (run / card).is_file():
+            raise DrawError(f"{run / card} is missing: the final choice's other candidate")
+        pairs.append((run / card, prefix.with_name(prefix.name + suffix)))
+    if board is not None:
+        source = board / f"{SUITE}.json"
+        if not source.is_file():
+            raise DrawError(f"{source} is missing: score the run first (maipp_bench.eval "
+                            f"--leaderboards {board})")
+        pairs.append((source, prefix.with_name(prefix.name + "_board") / source.name))
+    return pairs
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run", type=Path, help="train_2h.sh's OUT_DIR, finished")
+    parser.add_argument("prefix", type=Path, help="card prefix, e.g. docs/cards/ours_2h_...")
+    parser.add_argument("--board", type=Path, help="the --leaderboards folder that scored it")
+    parser.add_argument("--force", action="store_true", help="overwrite files under prefix")
+    args = parser.parse_args(argv)
+    try:
+        if not args.prefix.parent.is_dir():
+            raise DrawError(f"{args.prefix.parent} is not a folder")
+        pairs = plan(args.run, args.prefix, args.board)
+        there = [str(dst) for _, dst in pairs if dst.exists()]
+        if there and not args.force:
+            raise DrawError(f"{len(there)} files are already there ({there[0]}, ...); "
+                            "--force overwrites them")
+    except DrawError as err:
+        print(f"ship_draw.py: {err}", file=sys.stderr)
+        return 2
+    for source, destination in pairs:
+        destination.parent.mkdir(exist_ok=True)
+        shutil.copyfile(source, destination)
+        print(destination)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
