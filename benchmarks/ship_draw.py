@@ -29,10 +29,13 @@ Usage:
 from __future__ import annotations
 
 import argparse
+import filecmp
 import json
 import shutil
 import sys
 from pathlib import Path
+
+from stage3_minutes import stamps
 
 SUITE = "risk_aware"
 # (file in the run, suffix after the prefix, made only by a switch)
@@ -57,9 +60,12 @@ def plan(run: Path, prefix: Path, board: Path | None = None) -> list[tuple[Path,
     """The (source, destination) pairs that ship ``run`` under ``prefix``; raises
     :class:`DrawError` on an unfinished run, a missing file or an inconsistent choice."""
     wall = run / "wall.txt"
-    if not wall.is_file() or not any(line.startswith("end ")
-                                     for line in wall.read_text().splitlines()):
+    if not wall.is_file() or "end" not in stamps(wall):
         raise DrawError(f"{run} is not a finished train_2h.sh run (no 'end' line in {wall})")
+
+    def named(suffix: str) -> Path:
+        return prefix.with_name(prefix.name + suffix)
+
     # the policy file: final.pt, or without FINAL=1 (and with stage 3) stage 3's average
     policy = "final" if (run / "final.pt").is_file() or not (run / "avg.pt").is_file() else "avg"
     files = [(f"{policy}.pt", ".pt", False), (f"{policy}.json", ".json", False), *FILES]
@@ -67,7 +73,7 @@ def plan(run: Path, prefix: Path, board: Path | None = None) -> list[tuple[Path,
     for name, suffix, optional in files:
         source = run / name
         if source.is_file():
-            pairs.append((source, prefix.with_name(prefix.name + suffix)))
+            pairs.append((source, named(suffix)))
         elif not optional:
             raise DrawError(f"{source} is missing: every train_2h.sh run writes it")
     final = run / "final_select.json"
@@ -75,18 +81,18 @@ def plan(run: Path, prefix: Path, board: Path | None = None) -> list[tuple[Path,
         kept = Path(json.loads(final.read_text())["chosen"]["path"]).name
         if kept not in SET_ASIDE:
             raise DrawError(f"{final} kept {kept}, not one of {sorted(SET_ASIDE)}")
-        if (run / kept).read_bytes() != (run / "final.pt").read_bytes():
+        if not filecmp.cmp(run / kept, run / "final.pt", shallow=False):
             raise DrawError(f"{run / 'final.pt'} is not the {kept} that {final} kept")
         card, suffix = SET_ASIDE[kept]
         if not (run / card).is_file():
             raise DrawError(f"{run / card} is missing: the final choice's other candidate")
-        pairs.append((run / card, prefix.with_name(prefix.name + suffix)))
+        pairs.append((run / card, named(suffix)))
     if board is not None:
         source = board / f"{SUITE}.json"
         if not source.is_file():
             raise DrawError(f"{source} is missing: score the run first (maipp_bench.eval "
                             f"--leaderboards {board})")
-        pairs.append((source, prefix.with_name(prefix.name + "_board") / source.name))
+        pairs.append((source, named("_board") / source.name))
     return pairs
 
 

@@ -768,13 +768,13 @@ def test_train_2h_runs_its_stages_and_the_choices_end_to_end(tmp_path, pop):
     cards.mkdir()
     proc = _ship_draw(out, cards / "draw")
     assert proc.returncode == 0, proc.stderr
-    aside = "_stage3_avg.json" if chosen.name == "start.pt" else "_stage3_start.json"
+    set_aside = "avg" if chosen.name == "start.pt" else "start"
     assert {p.name.removeprefix("draw") for p in cards.iterdir()} == {
         ".pt", ".json", "_choice.json", "_start_choice.json", "_stages12.jsonl", "_wall.txt",
-        aside, *["_m1_stages12.jsonl"] * (members - 1)}
+        f"_stage3_{set_aside}.json", *["_m1_stages12.jsonl"] * (members - 1)}
     assert (cards / "draw.pt").read_bytes() == (out / "final.pt").read_bytes()
-    set_aside = "avg.json" if chosen.name == "start.pt" else "start.json"
-    assert (cards / f"draw{aside}").read_text() == (out / set_aside).read_text()
+    assert ((cards / f"draw_stage3_{set_aside}.json").read_text()
+            == (out / f"{set_aside}.json").read_text())
 
 
 def test_train_2h_without_stage3_ships_the_start_choice(tmp_path):
