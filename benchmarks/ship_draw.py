@@ -11,15 +11,16 @@ A two-hour draw is documented by a fixed set of files, each named after the card
     PREFIX_stages12.jsonl            the main member's stage 1-2 curve
     PREFIX_m1_stages12.jsonl         POP=2: the second member's stage 1-2 curve
     PREFIX_wall.txt                  the wall-clock stamps
+    PREFIX_score.txt                 benchmarks/score_draw.py's stamps of the protocol's passes
     PREFIX_stage3_start.json         FINAL=1: the card of the candidate the final choice
       or PREFIX_stage3_avg.json        set aside (the start's, or the average's)
     PREFIX_board/risk_aware.json     with --board: the protocol's board of the policy file
 
-Files a switch did not make (no FINAL, no DEADLINE, POP=1) are left out; the others must
-be there. The run must be finished (an ``end`` stamp in its wall.txt), and the kept
-candidate is read from final_select.json and checked byte for byte against final.pt, so
-that a card never names the wrong network. Existing files under the prefix are an error
-unless ``--force``.
+Files a switch did not make (no FINAL, no DEADLINE, POP=1; no score.txt before
+score_draw.py) are left out; the others must be there. The run must be finished (an
+``end`` stamp in its wall.txt), and the kept candidate is read from final_select.json and
+checked byte for byte against final.pt, so that a card never names the wrong network.
+Existing files under the prefix are an error unless ``--force``.
 
 Usage:
     python benchmarks/ship_draw.py outputs/h42 \\
@@ -46,6 +47,7 @@ FILES = (
     ("stage2/curve.jsonl", "_stages12.jsonl", False),
     ("m1/stage2/curve.jsonl", "_m1_stages12.jsonl", True),  # POP=2
     ("wall.txt", "_wall.txt", False),
+    ("score.txt", "_score.txt", True),  # benchmarks/score_draw.py
 )
 # FINAL=1's candidates (benchmarks/final_choice.sh): the one not kept ships its card.
 SET_ASIDE = {"start.pt": ("avg.json", "_stage3_avg.json"),
@@ -56,18 +58,30 @@ class DrawError(ValueError):
     """A run folder or prefix that cannot be shipped as it stands."""
 
 
+def finished(run: Path) -> bool:
+    """Whether train_2h.sh wrote its ``end`` stamp into ``run``/wall.txt."""
+    wall = run / "wall.txt"
+    return wall.is_file() and "end" in stamps(wall)
+
+
+def policy_file(run: Path) -> Path:
+    """A finished run's policy file: final.pt, or without FINAL=1 (and with stage 3)
+    stage 3's average avg.pt."""
+    return run / ("final.pt" if (run / "final.pt").is_file() or not (run / "avg.pt").is_file()
+                  else "avg.pt")
+
+
 def plan(run: Path, prefix: Path, board: Path | None = None) -> list[tuple[Path, Path]]:
     """The (source, destination) pairs that ship ``run`` under ``prefix``; raises
     :class:`DrawError` on an unfinished run, a missing file or an inconsistent choice."""
-    wall = run / "wall.txt"
-    if not wall.is_file() or "end" not in stamps(wall):
-        raise DrawError(f"{run} is not a finished train_2h.sh run (no 'end' line in {wall})")
+    if not finished(run):
+        raise DrawError(f"{run} is not a finished train_2h.sh run (no 'end' line in "
+                        f"{run / 'wall.txt'})")
 
     def named(suffix: str) -> Path:
         return prefix.with_name(prefix.name + suffix)
 
-    # the policy file: final.pt, or without FINAL=1 (and with stage 3) stage 3's average
-    policy = "final" if (run / "final.pt").is_file() or not (run / "avg.pt").is_file() else "avg"
+    policy = policy_file(run).stem
     files = [(f"{policy}.pt", ".pt", False), (f"{policy}.json", ".json", False), *FILES]
     pairs = []
     for name, suffix, optional in files:

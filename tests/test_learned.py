@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import hashlib
 import json
 import math
 import os
@@ -1862,3 +1863,48 @@ def test_curve_compare_weights_per_episode_fields_by_the_episodes_that_ended(mon
     assert math.isnan(window_means(rows, "trace_final", 3, 0)["4-"])
     assert window_means(rows, "reward_per_decision", 2, 0) == pytest.approx(
         {"1-": 0.2, "3-": 0.6})
+
+
+def test_score_draw_waits_for_the_run_then_scores_its_policy_file_in_passes(tmp_path):
+    """benchmarks/score_draw.py: an unfinished run is refused without --wait; with it, the
+    script waits for the 'end' stamp, then scores final.pt as ours_ti one pass of budgets
+    at a time (B = 5 before B = 2 here), stamps each pass into score.txt, and ship_draw.py
+    ships those stamps beside the wall clock's."""
+    script = Path(__file__).parents[1] / "benchmarks" / "score_draw.py"
+    run = tmp_path / "run"
+    (run / "stage2").mkdir(parents=True)
+    shutil.copyfile(Path(algos.__file__).parent.parent / "checkpoints" / "ours.pt",
+                    run / "final.pt")
+    for name in ("final.json", "stage2/curve.jsonl"):
+        (run / name).write_text("{}")
+    (run / "wall.txt").write_text("start 2026-12-05T02:28:28Z\n")
+    args = [sys.executable, str(script), str(run), "--episodes", "1", "--pass", "5",
+            "--pass", "2", "--workers", "1"]
+    proc = subprocess.run(args, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "not a finished train_2h.sh run" in proc.stderr
+    proc = subprocess.run([*args[:-4], "--pass", "5", "--workers", "1"], capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 2 and "a budget is in more than one pass" in proc.stderr
+    waiting = subprocess.Popen([*args, "--wait", "--poll", "0.1"], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    try:
+        with pytest.raises(subprocess.TimeoutExpired):
+            waiting.wait(timeout=1)
+        assert not (run / "score.txt").exists()
+        with open(run / "wall.txt", "a") as f:
+            f.write("end 2026-12-05T04:24:00Z\n")
+        _, err = waiting.communicate(timeout=300)
+    finally:
+        waiting.kill()
+    assert waiting.returncode == 0, err[-3000:]
+    kinds = [line.split()[:-1] for line in (run / "score.txt").read_text().splitlines()]
+    assert kinds == [["score_start"], ["scored", "B=5"], ["scored", "B=2"]]
+    rows = [json.loads(line) for line in
+            (tmp_path / "run_results" / "subset-1" / "risk_aware" / "ours_ti.jsonl").open()]
+    assert [r["setting"] for r in rows] == ["budget=5.0", "budget=2.0"]
+    digest = hashlib.sha256((run / "final.pt").read_bytes()).hexdigest()
+    assert {r["checkpoint_sha256"] for r in rows} == {digest}
+    cards = tmp_path / "cards"
+    cards.mkdir()
+    assert _ship_draw(run, cards / "draw").returncode == 0
+    assert (cards / "draw_score.txt").read_text() == (run / "score.txt").read_text()
