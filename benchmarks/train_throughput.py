@@ -11,7 +11,9 @@ updates after one warm-up update:
 ``--card CARD.json`` instead reports the throughput of a finished run from its checkpoint
 card (the wall time of every update is in its curve), or from a run folder or its
 ``curve.jsonl``; ``--split U`` also reports updates 1..U and U+1.. apart (e.g. a run
-resumed with other code at update U).
+resumed with other code at update U), and ``--split stages`` splits wherever the frames an
+update change (train_2h.sh's stage 1 collects half of stage 2's: its last update is found,
+not typed).
 
 ``--profile`` runs the timed updates under ``cProfile`` and adds the seconds and calls
 per update of :data:`PHASES` (collection, teammates' intents and their parts, env steps,
@@ -30,6 +32,7 @@ collection, over the same number of steps) is bound by the host.
 Usage (Hydra overrides as for training):
     python benchmarks/train_throughput.py algo=ours --updates 3
     python benchmarks/train_throughput.py --card maipp_bench/checkpoints/ours.json --split 70
+    python benchmarks/train_throughput.py --card docs/cards/PREFIX_stages12.jsonl --split stages
     python benchmarks/train_throughput.py algo=mappo n_envs=16 device=cuda --out t.json
     python benchmarks/train_throughput.py --ratio float32.json bf16.json
 """
@@ -84,6 +87,28 @@ def card_segment(curve: list[dict], start: int, stop: int) -> dict:
             "decisions_per_s": decisions / wall}
 
 
+def stage_cuts(curve: list[dict]) -> list[int]:
+    """The updates after which the frames an update change (a card's cumulative counter):
+    the last update of each stage but the last."""
+    frames = [0, *(r["frames"] for r in curve)]
+    per_update = [b - a for a, b in zip(frames, frames[1:])]
+    return [i for i in range(1, len(per_update)) if per_update[i] != per_update[i - 1]]
+
+
+def split_points(spec: list[str], curve: list[dict]) -> list[int]:
+    """``--split``'s update numbers, or with ``stages`` :func:`stage_cuts`."""
+    if spec == ["stages"]:
+        return stage_cuts(curve)
+    try:
+        cuts = [int(u) for u in spec]
+    except ValueError:
+        raise SystemExit(f"error: --split takes update numbers or 'stages', got {spec}") from None
+    if cuts != sorted(set(cuts)) or any(not 0 < u < len(curve) for u in cuts):
+        raise SystemExit(f"error: --split needs increasing updates in 1..{len(curve) - 1}, "
+                         f"got {cuts}")
+    return cuts
+
+
 # speed fields of an --out file; seconds_per_update is a time, the others rates
 SPEEDS = ("seconds_per_update", "collect_frames_per_s", "learn_rows_per_s")
 
@@ -119,8 +144,9 @@ def main() -> None:
     p.add_argument("--every-rollout", action="store_true",
                    help="run the network on every TI rollout, not once per distinct path "
                         "(the reference for benchmarks/ti_distinct_paths.py's speed-up)")
-    p.add_argument("--split", type=int, nargs="*", default=[],
-                   help="with --card: also report the updates between these update numbers")
+    p.add_argument("--split", nargs="*", default=[],
+                   help="with --card: also report the updates between these update numbers "
+                        "('stages': where the frames an update change)")
     p.add_argument("--profile", action="store_true",
                    help="cProfile the timed updates: seconds and calls of PHASES (the "
                         "profiler's overhead slows them, so their speeds are not comparable)")
@@ -141,9 +167,10 @@ def main() -> None:
         # which card_segment must not count), else a run folder or its curve.jsonl.
         curve = (json.loads(Path(args.card).read_text())["curve"]
                  if args.card.endswith(".json") else read_curve(args.card))
-        cuts = [0, *args.split, len(curve)] if args.split else [0, len(curve)]
+        split = split_points(args.split, curve) if args.split else []
+        cuts = [0, *split, len(curve)]
         report = [card_segment(curve, a, b) for a, b in zip(cuts, cuts[1:])]
-        if args.split:
+        if split:
             report.append(card_segment(curve, 0, len(curve)))
         print(json.dumps({"card": args.card, "segments": report}, indent=1))
         return

@@ -1908,3 +1908,23 @@ def test_score_draw_waits_for_the_run_then_scores_its_policy_file_in_passes(tmp_
     cards.mkdir()
     assert _ship_draw(run, cards / "draw").returncode == 0
     assert (cards / "draw_score.txt").read_text() == (run / "score.txt").read_text()
+
+
+def test_train_throughput_splits_a_card_where_its_stages_change(tmp_path):
+    """benchmarks/train_throughput.py --card ... --split stages: stage 1's last update is
+    where the frames an update double (train_2h.sh's stage 2), not typed; update numbers
+    out of the curve or not numbers are clear errors."""
+    curve = tmp_path / "curve.jsonl"
+    frames = [1280, 2560, 3840, 6400, 8960]
+    curve.write_text("".join(json.dumps({"update": u, "frames": f, "decisions": 10,
+                                         "wall_s": 10.0 * u}) + "\n"
+                             for u, f in enumerate(frames, 1)))
+    proc = _train_throughput("--card", str(curve), "--split", "stages")
+    assert proc.returncode == 0, proc.stderr
+    segments = json.loads(proc.stdout)["segments"]
+    assert [s["updates"] for s in segments] == ["1-3", "4-5", "1-5"]
+    assert [s["frames_per_s"] for s in segments] == [128.0, 256.0, 8960 / 50]
+    for split, message in ((["5"], "increasing updates in 1..4"),
+                           (["x"], "update numbers or 'stages'")):
+        proc = _train_throughput("--card", str(curve), "--split", *split)
+        assert proc.returncode == 1 and message in proc.stderr
