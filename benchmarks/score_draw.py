@@ -88,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     print(stamp(args.run, "score_start"), flush=True)
     for budgets, command in zip(passes, commands(args.run, results, boards, passes,
                                                  args.workers, args.episodes)):
-        print(" ".join(command[1:]), flush=True)
+        print("python", *command[1:], flush=True)  # as a user would type it
         code = subprocess.run(command).returncode
         if code:
             print(stamp(args.run, f"score_failed B={','.join(f'{b:g}' for b in budgets)}"),
