@@ -11,7 +11,9 @@ A two-hour draw is documented by a fixed set of files, each named after the card
     PREFIX_stages12.jsonl            the main member's stage 1-2 curve
     PREFIX_m1_stages12.jsonl         POP=2: the second member's stage 1-2 curve
     PREFIX_wall.txt                  the wall-clock stamps
-    PREFIX_score.txt                 benchmarks/score_draw.py's stamps of the protocol's passes
+    PREFIX_score.txt                 with --board: benchmarks/score_draw.py's stamps of the
+                                     protocol's passes (shipped with the board they made, so
+                                     that a run shipped at its end stamp ships no partial one)
     PREFIX_stage3_start.json         FINAL=1: the card of the candidate the final choice
       or PREFIX_stage3_avg.json        set aside (the start's, or the average's)
     PREFIX_board/risk_aware.json     with --board: the protocol's board of the policy file
@@ -47,7 +49,6 @@ FILES = (
     ("stage2/curve.jsonl", "_stages12.jsonl", False),
     ("m1/stage2/curve.jsonl", "_m1_stages12.jsonl", True),  # POP=2
     ("wall.txt", "_wall.txt", False),
-    ("score.txt", "_score.txt", True),  # benchmarks/score_draw.py
 )
 # FINAL=1's candidates (benchmarks/final_choice.sh): the one not kept ships its card.
 SET_ASIDE = {"start.pt": ("avg.json", "_stage3_avg.json"),
@@ -107,6 +108,8 @@ def plan(run: Path, prefix: Path, board: Path | None = None) -> list[tuple[Path,
             raise DrawError(f"{source} is missing: score the run first (maipp_bench.eval "
                             f"--leaderboards {board})")
         pairs.append((source, named("_board") / source.name))
+        if (run / "score.txt").is_file():  # benchmarks/score_draw.py's, when it scored it
+            pairs.append((run / "score.txt", named("_score.txt")))
     return pairs
 
 

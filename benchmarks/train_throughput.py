@@ -96,15 +96,16 @@ def stage_cuts(curve: list[dict]) -> list[int]:
 
 
 def split_points(spec: list[str], curve: list[dict]) -> list[int]:
-    """``--split``'s update numbers, or with ``stages`` :func:`stage_cuts`."""
+    """``--split``'s update numbers, or with ``stages`` :func:`stage_cuts`; a bad
+    ``spec`` is a :class:`ValueError` that names it."""
     if spec == ["stages"]:
         return stage_cuts(curve)
     try:
         cuts = [int(u) for u in spec]
     except ValueError:
-        raise SystemExit(f"error: --split takes update numbers or 'stages', got {spec}") from None
+        raise ValueError(f"--split takes update numbers or 'stages', got {spec}") from None
     if cuts != sorted(set(cuts)) or any(not 0 < u < len(curve) for u in cuts):
-        raise SystemExit(f"error: --split needs increasing updates in 1..{len(curve) - 1}, "
+        raise ValueError(f"--split needs increasing updates in 1..{len(curve) - 1}, "
                          f"got {cuts}")
     return cuts
 
@@ -167,7 +168,10 @@ def main() -> None:
         # which card_segment must not count), else a run folder or its curve.jsonl.
         curve = (json.loads(Path(args.card).read_text())["curve"]
                  if args.card.endswith(".json") else read_curve(args.card))
-        split = split_points(args.split, curve) if args.split else []
+        try:
+            split = split_points(args.split, curve) if args.split else []
+        except ValueError as err:
+            p.error(str(err))  # status 2, as every other bad argument
         cuts = [0, *split, len(curve)]
         report = [card_segment(curve, a, b) for a, b in zip(cuts, cuts[1:])]
         if split:

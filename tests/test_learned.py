@@ -1869,7 +1869,7 @@ def test_score_draw_waits_for_the_run_then_scores_its_policy_file_in_passes(tmp_
     """benchmarks/score_draw.py: an unfinished run is refused without --wait; with it, the
     script waits for the 'end' stamp, then scores final.pt as ours_ti one pass of budgets
     at a time (B = 5 before B = 2 here), stamps each pass into score.txt, and ship_draw.py
-    ships those stamps beside the wall clock's."""
+    ships those stamps with the board they made (not with the run alone)."""
     script = Path(__file__).parents[1] / "benchmarks" / "score_draw.py"
     run = tmp_path / "run"
     (run / "stage2").mkdir(parents=True)
@@ -1907,6 +1907,9 @@ def test_score_draw_waits_for_the_run_then_scores_its_policy_file_in_passes(tmp_
     cards = tmp_path / "cards"
     cards.mkdir()
     assert _ship_draw(run, cards / "draw").returncode == 0
+    assert not (cards / "draw_score.txt").exists()  # the stamps travel with their board
+    board = tmp_path / "run_results" / "subset-1" / "leaderboards"
+    assert _ship_draw(run, cards / "draw", "--board", str(board), "--force").returncode == 0
     assert (cards / "draw_score.txt").read_text() == (run / "score.txt").read_text()
 
 
@@ -1927,4 +1930,4 @@ def test_train_throughput_splits_a_card_where_its_stages_change(tmp_path):
     for split, message in ((["5"], "increasing updates in 1..4"),
                            (["x"], "update numbers or 'stages'")):
         proc = _train_throughput("--card", str(curve), "--split", *split)
-        assert proc.returncode == 1 and message in proc.stderr
+        assert proc.returncode == 2 and message in proc.stderr
