@@ -18,10 +18,11 @@ A two-hour draw is documented by a fixed set of files, each named after the card
       or PREFIX_stage3_avg.json        set aside (the start's, or the average's)
     PREFIX_board/risk_aware.json     with --board: the protocol's board of the policy file
 
-Files a switch did not make (no FINAL, no DEADLINE, POP=1; no score.txt before
-score_draw.py) are left out; the others must be there. The run must be finished (an
-``end`` stamp in its wall.txt), and the kept candidate is read from final_select.json and
-checked byte for byte against final.pt, so that a card never names the wrong network.
+Files a switch did not make (no FINAL, no DEADLINE, POP=1; no score.txt where the
+board was not scored by score_draw.py) are left out; the others must be there. The run
+must be finished (an ``end`` stamp in its wall.txt), and the kept candidate is read from
+final_select.json and checked byte for byte against final.pt, so that a card never names
+the wrong network.
 Existing files under the prefix are an error unless ``--force``.
 
 Usage:
