@@ -16,7 +16,8 @@ full runs, under ``RESULTS/subset-N``).
 Usage:
     python benchmarks/score_draw.py outputs/h45 --wait > outputs/h45_eval.log 2>&1
         # results in outputs/h45_results, the board in outputs/h45_boards
-    python benchmarks/ship_draw.py outputs/h45 docs/cards/PREFIX --board outputs/h45_boards
+    python benchmarks/ship_draw.py outputs/h45 docs/cards/PREFIX --board outputs/h45_boards \\
+        --results outputs/h45_results
 """
 
 from __future__ import annotations
@@ -28,9 +29,8 @@ import time
 from datetime import datetime, timezone
 from pathlib import Path
 
-from ship_draw import SUITE, finished, policy_file
+from ship_draw import METHOD, SUITE, finished, policy_file
 
-METHOD = "ours_ti"
 PASSES = ((5.0, 4.0), (2.0, 3.0))
 
 

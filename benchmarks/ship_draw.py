@@ -17,23 +17,30 @@ A two-hour draw is documented by a fixed set of files, each named after the card
     PREFIX_stage3_start.json         FINAL=1: the card of the candidate the final choice
       or PREFIX_stage3_avg.json        set aside (the start's, or the average's)
     PREFIX_board/risk_aware.json     with --board: the protocol's board of the policy file
+    PREFIX_b5_results/risk_aware/ours_ti.jsonl
+                                     with --results: the policy file's 300 protocol episodes
+                                     at B = 5, so that the paired comparison with the
+                                     committed docs/cards/catnipp_ti_risk_aware_b5_results
+                                     (benchmarks/paired_subset.py) runs from a fresh clone
 
 Files a switch did not make (no FINAL, no DEADLINE, POP=1; no score.txt where the
 board was not scored by score_draw.py) are left out; the others must be there. The run
 must be finished (an ``end`` stamp in its wall.txt), and the kept candidate is read from
 final_select.json and checked byte for byte against final.pt, so that a card never names
-the wrong network.
+the wrong network; the shipped episodes are those of that network (its sha256).
 Existing files under the prefix are an error unless ``--force``.
 
 Usage:
     python benchmarks/ship_draw.py outputs/h42 \\
-        docs/cards/ours_2h_intent_seed39_bf16_final_h2_pop2_wide8 --board outputs/h42_boards
+        docs/cards/ours_2h_intent_seed39_bf16_final_h2_pop2_wide8 --board outputs/h42_boards \\
+        --results outputs/h42_results
 """
 
 from __future__ import annotations
 
 import argparse
 import filecmp
+import hashlib
 import json
 import shutil
 import sys
@@ -42,6 +49,10 @@ from pathlib import Path
 from stage3_minutes import stamps
 
 SUITE = "risk_aware"
+METHOD = "ours_ti"
+# The budget whose episodes ship: where draws come closest to catnipp_ti (most misses are
+# behind it there), and the one whose catnipp_ti episodes are committed to pair with.
+PAIRED_BUDGET = 5.0
 # (file in the run, suffix after the prefix, made only by a switch)
 FILES = (
     ("final_select.json", "_choice.json", True),  # FINAL=1
@@ -114,18 +125,42 @@ def plan(run: Path, prefix: Path, board: Path | None = None) -> list[tuple[Path,
     return pairs
 
 
+def paired_episodes(run: Path, results: Path) -> list[str]:
+    """The lines of ``results``/risk_aware/ours_ti.jsonl that are the run's policy file's
+    episodes at :data:`PAIRED_BUDGET`; raises :class:`DrawError` when there are none."""
+    source = results / SUITE / f"{METHOD}.jsonl"
+    if not source.is_file():
+        raise DrawError(f"{source} is missing: score the run first (benchmarks/score_draw.py)")
+    digest = hashlib.sha256(policy_file(run).read_bytes()).hexdigest()
+    setting = f"budget={PAIRED_BUDGET}"
+    lines = [line for line in source.read_text().splitlines()
+             if line.strip() and (row := json.loads(line))["setting"] == setting
+             and row["checkpoint_sha256"] == digest]
+    if not lines:
+        raise DrawError(f"{source} holds no {setting} episode of {policy_file(run)} "
+                        f"(sha256 {digest[:12]})")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("run", type=Path, help="train_2h.sh's OUT_DIR, finished")
     parser.add_argument("prefix", type=Path, help="card prefix, e.g. docs/cards/ours_2h_...")
     parser.add_argument("--board", type=Path, help="the --leaderboards folder that scored it")
+    parser.add_argument("--results", type=Path, help="the --out folder of the per-episode "
+                        f"results that scored it: ships the B = {PAIRED_BUDGET:g} episodes")
     parser.add_argument("--force", action="store_true", help="overwrite files under prefix")
     args = parser.parse_args(argv)
     try:
         if not args.prefix.parent.is_dir():
             raise DrawError(f"{args.prefix.parent} is not a folder")
         pairs = plan(args.run, args.prefix, args.board)
+        episodes = args.prefix.with_name(f"{args.prefix.name}_b{PAIRED_BUDGET:g}_results")
+        episodes = episodes / SUITE / f"{METHOD}.jsonl"
+        lines = paired_episodes(args.run, args.results) if args.results else None
         there = [str(dst) for _, dst in pairs if dst.exists()]
+        if lines is not None and episodes.exists():
+            there.append(str(episodes))
         if there and not args.force:
             raise DrawError(f"{len(there)} files are already there ({there[0]}, ...); "
                             "--force overwrites them")
@@ -136,6 +171,10 @@ def main(argv: list[str] | None = None) -> int:
         destination.parent.mkdir(exist_ok=True)
         shutil.copyfile(source, destination)
         print(destination)
+    if lines is not None:
+        episodes.parent.mkdir(parents=True, exist_ok=True)
+        episodes.write_text("\n".join(lines) + "\n")
+        print(f"{episodes} ({len(lines)} episodes)")
     return 0
 
 

@@ -933,6 +933,13 @@ def test_ship_draw_refuses_what_it_cannot_ship(tmp_path):
     (run / "final_select.json").write_text(json.dumps({"chosen": {"path": "run/avg.pt"}}))
     proc = _ship_draw(run, cards / "draw", "--board", str(tmp_path / "boards"))
     assert proc.returncode == 2 and "risk_aware.json is missing: score the run" in proc.stderr
+    (tmp_path / "results" / "risk_aware").mkdir(parents=True)
+    other = {"setting": "budget=5.0", "checkpoint_sha256": "0" * 64}  # another network's
+    (tmp_path / "results" / "risk_aware" / "ours_ti.jsonl").write_text(json.dumps(other))
+    proc = _ship_draw(run, cards / "draw", "--results", str(tmp_path / "results"))
+    assert proc.returncode == 2 and "holds no budget=5.0 episode of" in proc.stderr
+    proc = _ship_draw(run, cards / "draw", "--results", str(tmp_path / "boards"))
+    assert proc.returncode == 2 and "ours_ti.jsonl is missing: score the run" in proc.stderr
     assert not any(cards.iterdir())
     assert _ship_draw(run, cards / "draw").returncode == 0
     assert sorted(p.name for p in cards.iterdir()) == [
@@ -1909,8 +1916,15 @@ def test_score_draw_waits_for_the_run_then_scores_its_policy_file_in_passes(tmp_
     assert _ship_draw(run, cards / "draw").returncode == 0
     assert not (cards / "draw_score.txt").exists()  # the stamps travel with their board
     board = tmp_path / "run_results" / "subset-1" / "leaderboards"
-    assert _ship_draw(run, cards / "draw", "--board", str(board), "--force").returncode == 0
+    results = tmp_path / "run_results" / "subset-1"
+    assert _ship_draw(run, cards / "draw", "--board", str(board), "--results", str(results),
+                      "--force").returncode == 0
     assert (cards / "draw_score.txt").read_text() == (run / "score.txt").read_text()
+    # --results ships the B = 5 episodes, the ones paired_subset.py pairs with catnipp_ti's
+    shipped = (cards / "draw_b5_results" / "risk_aware" / "ours_ti.jsonl").read_text()
+    assert [json.loads(line) for line in shipped.splitlines()] == rows[:1]
+    proc = _ship_draw(run, cards / "draw", "--results", str(results))
+    assert proc.returncode == 2 and "files are already there" in proc.stderr
 
 
 def test_train_throughput_splits_a_card_where_its_stages_change(tmp_path):
