@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import argparse
 import filecmp
-import hashlib
+import itertools
 import json
 import shutil
 import sys
@@ -127,18 +127,33 @@ def plan(run: Path, prefix: Path, board: Path | None = None) -> list[tuple[Path,
 
 def paired_episodes(run: Path, results: Path) -> list[str]:
     """The lines of ``results``/risk_aware/ours_ti.jsonl that are the run's policy file's
-    episodes at :data:`PAIRED_BUDGET`; raises :class:`DrawError` when there are none."""
+    episodes at :data:`PAIRED_BUDGET`, each of the protocol's episodes once; raises
+    :class:`DrawError` when some are missing or doubled, or a line is not a result row."""
+    from maipp_bench.protocol.protocol import file_sha256, load_protocol
+
     source = results / SUITE / f"{METHOD}.jsonl"
     if not source.is_file():
         raise DrawError(f"{source} is missing: score the run first (benchmarks/score_draw.py)")
-    digest = hashlib.sha256(policy_file(run).read_bytes()).hexdigest()
+    digest = file_sha256(policy_file(run))
     setting = f"budget={PAIRED_BUDGET}"
-    lines = [line for line in source.read_text().splitlines()
-             if line.strip() and (row := json.loads(line))["setting"] == setting
-             and row["checkpoint_sha256"] == digest]
-    if not lines:
-        raise DrawError(f"{source} holds no {setting} episode of {policy_file(run)} "
-                        f"(sha256 {digest[:12]})")
+    lines, episodes, versions = [], [], set()
+    for number, line in enumerate(source.read_text().splitlines(), 1):
+        try:
+            row = json.loads(line)
+            if row["setting"] == setting and row["checkpoint_sha256"] == digest:
+                episodes.append((row["instance"], row["trial"]))
+                versions.add(row["protocol_version"])
+                lines.append(line)
+        except (json.JSONDecodeError, KeyError, TypeError) as err:
+            raise DrawError(f"{source}:{number} is not a result row ({err!r})") from None
+    if len(versions) > 1:
+        raise DrawError(f"{source}: {setting} rows of protocol versions {sorted(versions)}")
+    suite = load_protocol(versions.pop() if versions else 1).suite(SUITE)
+    wanted = set(itertools.product(suite.instance_seeds, suite.trial_seeds))
+    if len(episodes) != len(wanted) or set(episodes) != wanted:
+        raise DrawError(f"{source} holds {len(set(episodes) & wanted)} of the protocol's "
+                        f"{len(wanted)} {setting} episodes of {policy_file(run)} (sha256 "
+                        f"{digest[:12]}; {len(episodes)} rows): score it in full first")
     return lines
 
 

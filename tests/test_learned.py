@@ -26,6 +26,7 @@ from maipp_bench.algos.checkpoint import average_policies, load_core
 from maipp_bench.algos.decisions import decision_batch
 from maipp_bench.algos.modules import AttentionCore, decision_actor
 from maipp_bench.envs import MAIPPConfig
+from maipp_bench.protocol.protocol import load_protocol
 from maipp_bench.protocol.runner import run_chunk
 
 
@@ -933,18 +934,38 @@ def test_ship_draw_refuses_what_it_cannot_ship(tmp_path):
     (run / "final_select.json").write_text(json.dumps({"chosen": {"path": "run/avg.pt"}}))
     proc = _ship_draw(run, cards / "draw", "--board", str(tmp_path / "boards"))
     assert proc.returncode == 2 and "risk_aware.json is missing: score the run" in proc.stderr
-    (tmp_path / "results" / "risk_aware").mkdir(parents=True)
-    other = {"setting": "budget=5.0", "checkpoint_sha256": "0" * 64}  # another network's
-    (tmp_path / "results" / "risk_aware" / "ours_ti.jsonl").write_text(json.dumps(other))
-    proc = _ship_draw(run, cards / "draw", "--results", str(tmp_path / "results"))
-    assert proc.returncode == 2 and "holds no budget=5.0 episode of" in proc.stderr
+    # --results: the policy file's rows at B = 5, each of the protocol's 300 episodes once
+    suite = load_protocol(1).suite("risk_aware")
+    digest = hashlib.sha256(b"average").hexdigest()
+    rows = [{"setting": f"budget={b}", "checkpoint_sha256": sha, "instance": i, "trial": t,
+             "protocol_version": 1}
+            for i in suite.instance_seeds for t in suite.trial_seeds
+            for b, sha in ((5.0, digest), (4.0, digest), (5.0, "0" * 64))]
+    results = tmp_path / "results" / "risk_aware" / "ours_ti.jsonl"
+    results.parent.mkdir(parents=True)
+    for lines, message in ((rows[3:], "holds 299 of the protocol's 300 budget=5.0 episodes"),
+                           (rows[:3] + rows, "; 301 rows): score it in full first"),
+                           (rows + ["{"], "ours_ti.jsonl:901 is not a result row")):
+        results.write_text("\n".join(map(json.dumps, lines)) + "\n")
+        proc = _ship_draw(run, cards / "draw", "--results", str(results.parents[1]))
+        assert proc.returncode == 2 and message in proc.stderr, proc.stderr
     proc = _ship_draw(run, cards / "draw", "--results", str(tmp_path / "boards"))
     assert proc.returncode == 2 and "ours_ti.jsonl is missing: score the run" in proc.stderr
     assert not any(cards.iterdir())
-    assert _ship_draw(run, cards / "draw").returncode == 0
+    results.write_text("\n".join(map(json.dumps, rows)) + "\n")
+    assert _ship_draw(run, cards / "draw", "--results", str(results.parents[1])).returncode == 0
     assert sorted(p.name for p in cards.iterdir()) == [
-        "draw.json", "draw.pt", "draw_choice.json", "draw_stage3_start.json",
+        "draw.json", "draw.pt", "draw_b5_results", "draw_choice.json", "draw_stage3_start.json",
         "draw_stages12.jsonl", "draw_wall.txt"]
+    shipped = (cards / "draw_b5_results" / "risk_aware" / "ours_ti.jsonl").read_text()
+    assert [json.loads(line) for line in shipped.splitlines()] == rows[::3]
+    for path in cards.glob("draw?*"):  # only the episodes are there: still refused
+        if path.is_file():
+            path.unlink()
+    proc = _ship_draw(run, cards / "draw", "--results", str(results.parents[1]))
+    assert proc.returncode == 2 and "1 files are already there" in proc.stderr
+    assert "draw_b5_results/risk_aware/ours_ti.jsonl" in proc.stderr
+    assert _ship_draw(run, cards / "draw", "--force").returncode == 0
     proc = _ship_draw(run, cards / "draw")
     assert proc.returncode == 2 and "6 files are already there" in proc.stderr
     assert _ship_draw(run, cards / "draw", "--force").returncode == 0
@@ -1916,15 +1937,13 @@ def test_score_draw_waits_for_the_run_then_scores_its_policy_file_in_passes(tmp_
     assert _ship_draw(run, cards / "draw").returncode == 0
     assert not (cards / "draw_score.txt").exists()  # the stamps travel with their board
     board = tmp_path / "run_results" / "subset-1" / "leaderboards"
-    results = tmp_path / "run_results" / "subset-1"
-    assert _ship_draw(run, cards / "draw", "--board", str(board), "--results", str(results),
-                      "--force").returncode == 0
+    assert _ship_draw(run, cards / "draw", "--board", str(board), "--force").returncode == 0
     assert (cards / "draw_score.txt").read_text() == (run / "score.txt").read_text()
-    # --results ships the B = 5 episodes, the ones paired_subset.py pairs with catnipp_ti's
-    shipped = (cards / "draw_b5_results" / "risk_aware" / "ours_ti.jsonl").read_text()
-    assert [json.loads(line) for line in shipped.splitlines()] == rows[:1]
-    proc = _ship_draw(run, cards / "draw", "--results", str(results))
-    assert proc.returncode == 2 and "files are already there" in proc.stderr
+    # a subset's episodes are not the protocol's: --results refuses to ship them
+    proc = _ship_draw(run, cards / "draw", "--results", str(tmp_path / "run_results" /
+                                                          "subset-1"), "--force")
+    assert proc.returncode == 2
+    assert "holds 1 of the protocol's 300 budget=5.0 episodes" in proc.stderr
 
 
 def test_train_throughput_splits_a_card_where_its_stages_change(tmp_path):
