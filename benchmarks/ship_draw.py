@@ -71,6 +71,17 @@ class DrawError(ValueError):
     """A run folder or prefix that cannot be shipped as it stands."""
 
 
+def shipped(prefix: Path, suffix: str) -> Path:
+    """The file (or folder) that ``suffix`` names under the card ``prefix``."""
+    return prefix.with_name(prefix.name + suffix)
+
+
+def episodes_file(prefix: Path) -> Path:
+    """Where ``--results`` ships the :data:`PAIRED_BUDGET` episodes under ``prefix``, laid
+    out as a results folder so that paired_subset.py's ``--subset`` reads it."""
+    return shipped(prefix, f"_b{PAIRED_BUDGET:g}_results") / SUITE / f"{METHOD}.jsonl"
+
+
 def finished(run: Path) -> bool:
     """Whether train_2h.sh wrote its ``end`` stamp into ``run``/wall.txt."""
     wall = run / "wall.txt"
@@ -91,16 +102,13 @@ def plan(run: Path, prefix: Path, board: Path | None = None) -> list[tuple[Path,
         raise DrawError(f"{run} is not a finished train_2h.sh run (no 'end' line in "
                         f"{run / 'wall.txt'})")
 
-    def named(suffix: str) -> Path:
-        return prefix.with_name(prefix.name + suffix)
-
     policy = policy_file(run).stem
     files = [(f"{policy}.pt", ".pt", False), (f"{policy}.json", ".json", False), *FILES]
     pairs = []
     for name, suffix, optional in files:
         source = run / name
         if source.is_file():
-            pairs.append((source, named(suffix)))
+            pairs.append((source, shipped(prefix, suffix)))
         elif not optional:
             raise DrawError(f"{source} is missing: every train_2h.sh run writes it")
     final = run / "final_select.json"
@@ -113,15 +121,15 @@ def plan(run: Path, prefix: Path, board: Path | None = None) -> list[tuple[Path,
         card, suffix = SET_ASIDE[kept]
         if not (run / card).is_file():
             raise DrawError(f"{run / card} is missing: the final choice's other candidate")
-        pairs.append((run / card, named(suffix)))
+        pairs.append((run / card, shipped(prefix, suffix)))
     if board is not None:
         source = board / f"{SUITE}.json"
         if not source.is_file():
             raise DrawError(f"{source} is missing: score the run first (maipp_bench.eval "
                             f"--leaderboards {board})")
-        pairs.append((source, named("_board") / source.name))
+        pairs.append((source, shipped(prefix, "_board") / source.name))
         if (run / "score.txt").is_file():  # benchmarks/score_draw.py's, when it scored it
-            pairs.append((run / "score.txt", named("_score.txt")))
+            pairs.append((run / "score.txt", shipped(prefix, "_score.txt")))
     return pairs
 
 
@@ -134,7 +142,8 @@ def paired_episodes(run: Path, results: Path) -> list[str]:
     source = results / SUITE / f"{METHOD}.jsonl"
     if not source.is_file():
         raise DrawError(f"{source} is missing: score the run first (benchmarks/score_draw.py)")
-    digest = file_sha256(policy_file(run))
+    policy = policy_file(run)
+    digest = file_sha256(policy)
     setting = f"budget={PAIRED_BUDGET}"
     lines, episodes, versions = [], [], set()
     for number, line in enumerate(source.read_text().splitlines(), 1):
@@ -152,7 +161,7 @@ def paired_episodes(run: Path, results: Path) -> list[str]:
     wanted = set(itertools.product(suite.instance_seeds, suite.trial_seeds))
     if len(episodes) != len(wanted) or set(episodes) != wanted:
         raise DrawError(f"{source} holds {len(set(episodes) & wanted)} of the protocol's "
-                        f"{len(wanted)} {setting} episodes of {policy_file(run)} (sha256 "
+                        f"{len(wanted)} {setting} episodes of {policy} (sha256 "
                         f"{digest[:12]}; {len(episodes)} rows): score it in full first")
     return lines
 
@@ -170,12 +179,10 @@ def main(argv: list[str] | None = None) -> int:
         if not args.prefix.parent.is_dir():
             raise DrawError(f"{args.prefix.parent} is not a folder")
         pairs = plan(args.run, args.prefix, args.board)
-        episodes = args.prefix.with_name(f"{args.prefix.name}_b{PAIRED_BUDGET:g}_results")
-        episodes = episodes / SUITE / f"{METHOD}.jsonl"
+        episodes = episodes_file(args.prefix)
         lines = paired_episodes(args.run, args.results) if args.results else None
-        there = [str(dst) for _, dst in pairs if dst.exists()]
-        if lines is not None and episodes.exists():
-            there.append(str(episodes))
+        destinations = [dst for _, dst in pairs] + ([episodes] if lines is not None else [])
+        there = [str(dst) for dst in destinations if dst.exists()]
         if there and not args.force:
             raise DrawError(f"{len(there)} files are already there ({there[0]}, ...); "
                             "--force overwrites them")
