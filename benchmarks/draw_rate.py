@@ -6,8 +6,9 @@ means ("in the means" or "by a margin") and those that also stayed within two ho
 "over 2 h"), each with an exact (Clopper-Pearson) 95% interval for the rate: with a
 handful of draws per recipe, the interval says how little the count alone pins down.
 Then how many of the draws that missed were behind ``catnipp_ti`` at B = 5 in the mean,
-which draw has the lowest B = 2, and how often the ``FINAL=1`` draws' final choice kept
-stage 3's start over its average (the cells' "(start kept)" / "(average kept)").
+which draw has the lowest score at each budget, each family's shortest and longest run
+(where the recipe cell states its minutes), and how often the ``FINAL=1`` draws' final
+choice kept stage 3's start over its average (the cells' "(start kept)" / "(average kept)").
 With ``--plot PATH``, a figure of every draw's two deciding margins, the table's B = 2
 minus ``sga_rrt_0.3_0.4`` and B = 5 minus ``catnipp_ti`` (each with two standard errors),
 coloured by whether the draw met the target: where the draws miss, at a glance.
@@ -137,8 +138,15 @@ def main() -> None:
     behind = [d for d in missed if draws[d]["B5_minus_ti"] > 0]
     print(f"missed: {len(missed)}, of them behind catnipp_ti at B = 5 in the mean: "
           f"{len(behind)} ({', '.join(map(str, sorted(behind)))})")
-    best = min(draws, key=lambda d: draws[d]["B2"])
-    print(f"lowest B = 2: {draws[best]['B2']} (draw {best})")
+    for budget in (2, 3, 4, 5):
+        best = min(draws, key=lambda d: draws[d]["scores"][budget])
+        print(f"lowest B = {budget}: {draws[best]['scores'][budget]} (draw {best})")
+    for name, ds in groups.items():
+        timed = {d: draws[d]["minutes"] for d in ds if draws[d]["minutes"] is not None}
+        if timed:
+            print(f"minutes, {name}: {min(timed.values())} to {max(timed.values())} "
+                  f"(shortest draw {min(timed, key=timed.get)}; {len(timed)} of "
+                  f"{len(ds)} draws state them)")
     final = [d for d in draws if "FINAL=1" in draws[d]["recipe"]]
     kept = {which: [d for d in final if f"({which} kept" in draws[d]["recipe"]]
             for which in ("start", "average")}

@@ -99,16 +99,26 @@ def margin(cell: str) -> tuple[float, float]:
     return float(m.group(1)), float(m.group(2))
 
 
+def run_minutes(recipe: str) -> float | None:
+    """The whole run's minutes where the recipe cell states them (", 116.0 min"); a stage
+    split ("33 / 30 / 48 min") or stage 3's share ("trimmed to 24.9 min") is not the run's
+    total and gives None, as does no figure."""
+    m = re.search(r", (\d+(?:\.\d+)?) min\b", recipe)
+    return float(m.group(1)) if m else None
+
+
 def outcomes() -> dict[int, dict]:
-    """Each draw's B = 2 score, its margins (mean, standard error) at B = 2 against
-    ``sga_rrt_0.3_0.4`` and at B = 5 against ``catnipp_ti``, B = 5's mean alone as
-    ``B5_minus_ti``, and its recipe and "met" cells, from the docs' table."""
+    """Each draw's scores at B = 2-5 (``scores``; B = 2's also as ``B2``), its margins
+    (mean, standard error) at B = 2 against ``sga_rrt_0.3_0.4`` and at B = 5 against
+    ``catnipp_ti``, B = 5's mean alone as ``B5_minus_ti``, its minutes where the recipe
+    cell states them, and its recipe and "met" cells, from the docs' table."""
     out = {}
     for draw, cells in table_rows().items():
         b2, b5 = margin(cells[7]), margin(cells[9])
-        out[draw] = {"B2": float(cells[3]), "B2_minus_sga_mean_se": b2,
+        scores = dict(zip((2, 3, 4, 5), map(float, cells[3:7])))
+        out[draw] = {"B2": scores[2], "scores": scores, "B2_minus_sga_mean_se": b2,
                      "B5_minus_ti_mean_se": b5, "B5_minus_ti": b5[0],
-                     "recipe": cells[1], "met": cells[10]}
+                     "minutes": run_minutes(cells[1]), "recipe": cells[1], "met": cells[10]}
     return out
 
 
