@@ -6,6 +6,8 @@ means ("in the means" or "by a margin") and those that also stayed within two ho
 "over 2 h"), each with an exact (Clopper-Pearson) 95% interval for the rate: with a
 handful of draws per recipe, the interval says how little the count alone pins down.
 Then how many of the draws that missed were behind ``catnipp_ti`` at B = 5 in the mean,
+and, per family, at which of the table's deciding budgets (B = 2, 4, 5) each missed draw
+was behind,
 which draw has the lowest score at each budget, each family's shortest and longest run
 (where the recipe cell states its minutes), and how often the ``FINAL=1`` draws' final
 choice kept stage 3's start over its average (the cells' "(start kept)" / "(average kept)").
@@ -138,6 +140,13 @@ def main() -> None:
     behind = [d for d in missed if draws[d]["B5_minus_ti"] > 0]
     print(f"missed: {len(missed)}, of them behind catnipp_ti at B = 5 in the mean: "
           f"{len(behind)} ({', '.join(map(str, sorted(behind)))})")
+    deciding = {2: "B2_minus_sga_mean_se", 4: "B4_minus_ti_mean_se", 5: "B5_minus_ti_mean_se"}
+    for name, ds in groups.items():
+        behind_at = {d: [b for b, key in deciding.items() if draws[d][key][0] > 0]
+                     for d in ds if d in missed}
+        if behind_at and name != "all":  # the families' lines already list every draw
+            print(f"missed, {name}, behind at (of the table's B = 2, 4, 5): " + ", ".join(
+                f"{d} B = {'/'.join(map(str, bs)) or 'none'}" for d, bs in behind_at.items()))
     for budget in (2, 3, 4, 5):
         best = min(draws, key=lambda d: draws[d]["scores"][budget])
         print(f"lowest B = {budget}: {draws[best]['scores'][budget]} (draw {best})")
