@@ -10,7 +10,8 @@ updates after one warm-up update:
 
 ``--card CARD.json`` instead reports the throughput of a finished run from its checkpoint
 card (the wall time of every update is in its curve), or from a run folder or its
-``curve.jsonl``; ``--split U`` also reports updates 1..U and U+1.. apart (e.g. a run
+``curve.jsonl`` (with an exported snapshot's card, also ``run_continued_to``: the updates
+its run made past the snapshot); ``--split U`` also reports updates 1..U and U+1.. apart (e.g. a run
 resumed with other code at update U), and ``--split stages`` splits wherever the frames an
 update change (train_2h.sh's stage 1 collects half of stage 2's: its last update is found,
 not typed).
@@ -166,8 +167,8 @@ def main() -> None:
     if args.card:
         # A card's own curve (read_curve would shift a fine-tune's frames by its init's,
         # which card_segment must not count), else a run folder or its curve.jsonl.
-        curve = (json.loads(Path(args.card).read_text())["curve"]
-                 if args.card.endswith(".json") else read_curve(args.card))
+        card = json.loads(Path(args.card).read_text()) if args.card.endswith(".json") else {}
+        curve = card["curve"] if card else read_curve(args.card)
         try:
             split = split_points(args.split, curve) if args.split else []
         except ValueError as err:
@@ -176,7 +177,10 @@ def main() -> None:
         report = [card_segment(curve, a, b) for a, b in zip(cuts, cuts[1:])]
         if split:
             report.append(card_segment(curve, 0, len(curve)))
-        print(json.dumps({"card": args.card, "segments": report}, indent=1))
+        out = {"card": args.card, "segments": report}
+        if "run_continued_to" in card:  # an exported snapshot: the updates its run made
+            out["run_continued_to"] = card["run_continued_to"]
+        print(json.dumps(out, indent=1))
         return
     with initialize_config_module("maipp_bench.conf", version_base=None):
         cfg = compose("train", overrides=args.overrides)
