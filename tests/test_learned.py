@@ -1964,3 +1964,18 @@ def test_train_throughput_splits_a_card_where_its_stages_change(tmp_path):
                            (["x"], "update numbers or 'stages'")):
         proc = _train_throughput("--card", str(curve), "--split", *split)
         assert proc.returncode == 2 and message in proc.stderr
+
+
+def test_train_throughput_prints_a_snapshot_cards_run_continued_to(tmp_path):
+    """--card on an exported snapshot's card also prints ``run_continued_to`` (the docs cite
+    it for the updates stage 3 made); a card without the field prints no such key."""
+    rows = [{"update": u, "frames": 1280 * u, "decisions": 10, "wall_s": 10.0 * u}
+            for u in (1, 2, 3)]
+    for extra, expected in (({"run_continued_to": 5}, 5), ({}, None)):
+        card = tmp_path / "card.json"
+        card.write_text(json.dumps({"curve": rows, **extra}))
+        proc = _train_throughput("--card", str(card))
+        assert proc.returncode == 0, proc.stderr
+        out = json.loads(proc.stdout)
+        assert out.get("run_continued_to") == expected
+        assert [s["updates"] for s in out["segments"]] == ["1-3"]
