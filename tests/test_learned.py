@@ -1979,3 +1979,20 @@ def test_train_throughput_prints_a_snapshot_cards_run_continued_to(tmp_path):
         out = json.loads(proc.stdout)
         assert out.get("run_continued_to") == expected
         assert [s["updates"] for s in out["segments"]] == ["1-3"]
+
+
+def test_draw_figures_reprints_a_shipped_draws_figures():
+    """benchmarks/draw_figures.sh PREFIX reprints the figures results.md writes up for a
+    shipped draw from its committed cards (here the fifty-second's); no card is exit 2."""
+    root = Path(__file__).parents[1]
+    script = root / "benchmarks" / "draw_figures.sh"
+    prefix = "docs/cards/ours_2h_intent_seed49_bf16_final_h2_pop2_wide8"
+    proc = subprocess.run(["bash", str(script), prefix], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert "end 2026-12-06T04:23:22Z" in proc.stdout  # the wall stamps
+    assert '"run_continued_to": 36' in proc.stdout  # stage 3's updates, from its card
+    assert "| `ours_ti` | 35.0 ± 9.2 | 22.8 ± 5.5 | 131.0 ± 29.9 | 60.1 ± 18.4 |" in proc.stdout
+    assert "minus catnipp_ti  -0.11 ± 0.37" in proc.stdout  # B = 5, paired
+    proc = subprocess.run(["bash", str(script), "docs/cards/no_such_draw"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and "no card docs/cards/no_such_draw.json" in proc.stderr
