@@ -5,6 +5,8 @@
 #
 # Usage: bash benchmarks/draw_figures.sh docs/cards/PREFIX [docs/cards/PREVIOUS_PREFIX]
 #   PREVIOUS_PREFIX (the draw before) adds stage3_minutes.py's side-by-side calibration.
+#   The counts come from draw_rate.py, which reads docs/results.md's table of draws: add
+#   the draw's row first, or they are the counts before it.
 set -euo pipefail
 P=${1:?usage: draw_figures.sh docs/cards/PREFIX [docs/cards/PREVIOUS_PREFIX]}
 cd "$(dirname "$0")/.."  # PREFIX paths are relative to the repository root
@@ -32,4 +34,5 @@ if [ -d "${P}_board" ]; then
 fi
 [ -d "${P}_b5_results" ] && py benchmarks/paired_subset.py --subset "${P}_b5_results" \
   --results docs/cards/catnipp_ti_risk_aware_b5_results --method ours_ti --against catnipp_ti
+echo "(draw_rate.py counts the rows of docs/results.md's table of draws; add this draw's row first)"
 py benchmarks/draw_rate.py
