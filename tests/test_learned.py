@@ -1991,6 +1991,8 @@ def test_draw_figures_reprints_a_shipped_draws_figures():
     assert proc.returncode == 0, proc.stderr
     assert "end 2026-12-06T04:23:22Z" in proc.stdout  # the wall stamps
     assert '"run_continued_to": 36' in proc.stdout  # stage 3's updates, from its card
+    # the final choice kept its start by 0.92 on held-out episodes (docs: "by 0.92")
+    assert "update 35 (outputs/h52/avg.pt): 29.37, +0.92 behind the chosen" in proc.stdout
     assert "| `ours_ti` | 35.0 ± 9.2 | 22.8 ± 5.5 | 131.0 ± 29.9 | 60.1 ± 18.4 |" in proc.stdout
     assert "minus catnipp_ti  -0.11 ± 0.37" in proc.stdout  # B = 5, paired
     proc = subprocess.run(["bash", str(script), "docs/cards/no_such_draw"],
