@@ -19,30 +19,12 @@ for s in "${P}_stages12.jsonl" "${P}_m1_stages12.jsonl"; do
   [ -f "$s" ] && py benchmarks/train_throughput.py --card "$s" --split stages
 done
 [ $# -ge 2 ] && py benchmarks/stage3_minutes.py --calibrate "$2" "$P"
-# The docs' "kept X by D" and "N standard errors": each choice's runner-up minus the chosen
-# (select_snapshot.py's score, lower is better) and the z of each "minus the last candidate".
-margins() { echo "+ margins $1"; python - "$1" <<'PY'
-import json, sys
-d = json.load(open(sys.argv[1]))
-best = d["chosen"]
-print(f"chosen: update {best['update']} ({best['path']}), score {best['mean']:.2f}")
-for row in d["candidates"]:
-    if row["position"] == best["position"]:
-        continue
-    # select_snapshot.py keys each budget's paired difference as minus_end[_B<b>] / se[_B<b>].
-    suffixes = [k.removeprefix("minus_end") for k in row if k.startswith("minus_end")]
-    diffs = "  ".join(f"{s.lstrip('_') or 'all'}: {row['minus_end' + s]:+.2f} ± {row['se' + s]:.2f}"
-                      f" (z {row['minus_end' + s] / row['se' + s]:+.1f})"
-                      for s in suffixes if row["se" + s] > 0) or "none (it is the last)"
-    print(f"  update {row['update']} ({row['path']}): {row['mean']:.2f}, "
-          f"{row['mean'] - best['mean']:+.2f} behind the chosen; minus the last candidate: {diffs}")
-PY
-}
 for f in "${P}_start_choice.json" "${P}_deadline.json" "${P}_choice.json" "$P.json"; do
   [ -f "$f" ] && show "$f"
 done
+# The docs' "kept X by D" and "N standard errors" of each held-out choice.
 for f in "${P}_start_choice.json" "${P}_choice.json"; do
-  [ -f "$f" ] && margins "$f"
+  [ -f "$f" ] && py benchmarks/select_snapshot.py --show "$f"
 done
 # The stage-3 snapshot card set aside by the final choice carries run_continued_to.
 for f in "$P.json" "${P}_stage3_start.json" "${P}_stage3_avg.json"; do

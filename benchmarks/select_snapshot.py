@@ -25,6 +25,7 @@ Usage:
         --budget 4 5 --episodes 64 --first 160 --workers 2 --out final_select.json
     python benchmarks/select_snapshot.py --run outputs/h9/stage2 --window 15 \\
         --budget 2 5 --episodes 160 64 --workers 2 --out outputs/h9/select.json
+    python benchmarks/select_snapshot.py --show outputs/h9/select.json  # its margins again
 """
 
 from __future__ import annotations
@@ -89,9 +90,31 @@ def _traces(path: str, method: str, budget: float, episodes: int, first: int,
     return [r["trace"] for r in rows]
 
 
+def margins(choice: dict) -> list[str]:
+    """A written choice's margins, as the docs quote them ("kept X by D", "N standard
+    errors"): each other candidate's score minus the chosen one's (lower is better) and
+    the z of each of its paired differences against the last candidate."""
+    best = choice["chosen"]
+    lines = [f"chosen: update {best['update']} ({best['path']}), score {best['mean']:.2f}"]
+    for row in choice["candidates"]:
+        if row["position"] == best["position"]:
+            continue
+        # main() keys one budget as minus_end / se, several as minus_end_B<b> / se_B<b>.
+        suffixes = [k.removeprefix("minus_end") for k in row if k.startswith("minus_end")]
+        diffs = "  ".join(f"{s.lstrip('_') or 'all'}: {row['minus_end' + s]:+.2f} ± "
+                          f"{row['se' + s]:.2f} (z {row['minus_end' + s] / row['se' + s]:+.1f})"
+                          for s in suffixes if row["se" + s] > 0) or "none (it is the last)"
+        lines.append(f"  update {row['update']} ({row['path']}): {row['mean']:.2f}, "
+                     f"{row['mean'] - best['mean']:+.2f} behind the chosen; "
+                     f"minus the last candidate: {diffs}")
+    return lines
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--show", type=Path, metavar="JSON",
+                        help="print the margins of a choice written by --out; scores nothing")
     source.add_argument("--run", type=Path, nargs="+",
                         help="one or more training runs' directories")
     source.add_argument("--candidates", type=Path, nargs="+", metavar="FILE",
@@ -110,6 +133,9 @@ def main() -> None:
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", type=Path, help="write the scores and the choice here (JSON)")
     args = p.parse_args()
+    if args.show is not None:
+        print("\n".join(margins(json.loads(args.show.read_text()))))
+        return
     budgets = sorted(set(args.budget))
     typed = " ".join(f"{b:g}" for b in args.budget)
     if len(budgets) != len(args.budget):
