@@ -18,12 +18,21 @@
 # Run from the folder train_2h.sh ran in (the card's paths are relative to it).
 # HELDOUT_SET: the held-out episode set (default 2; 1 replays the choices made before
 # 2026-11-27's session 40 on one shared roadmap).
-# Usage: [FINAL_EPISODES=64] [FINAL_FIRST=160] [HELDOUT_SET=2] bash benchmarks/final_choice.sh OUT_DIR
+# FINAL_BUDGETS (default "4 5"; 2026-12-06): the budgets it scores on. Three of the eight
+# WIDE=8 draws that missed to the fifty-sixth did so at B = 2 alone, which nothing after
+# the start choice scores; "2 4 5" adds it.
+# Usage: [FINAL_EPISODES=64] [FINAL_FIRST=160] [FINAL_BUDGETS="4 5"] [HELDOUT_SET=2] bash benchmarks/final_choice.sh OUT_DIR
 set -euo pipefail
 OUT=${1:?usage: final_choice.sh OUT_DIR}
 EPISODES=${FINAL_EPISODES:-64}
 FIRST=${FINAL_FIRST:-160}
 HELDOUT_SET=${HELDOUT_SET:-2}
+read -ra BUDGETS <<< "${FINAL_BUDGETS:-4 5}"
+for b in "${BUDGETS[@]}"; do
+    [[ $b =~ ^[0-9]+([.][0-9]+)?$ ]] && [[ ! $b =~ ^0+([.]0+)?$ ]] \
+        || { echo "final_choice.sh: FINAL_BUDGETS must be positive numbers, got '$b'" >&2; exit 2; }
+done
+((${#BUDGETS[@]} >= 1)) || { echo "final_choice.sh: FINAL_BUDGETS names no budget" >&2; exit 2; }
 [[ $HELDOUT_SET == 1 || $HELDOUT_SET == 2 ]] \
     || { echo "final_choice.sh: HELDOUT_SET must be 1 or 2, got '$HELDOUT_SET'" >&2; exit 2; }
 HERE=$(dirname "$0")
@@ -38,7 +47,7 @@ START=$(python -c 'import json, sys; print(json.load(open(sys.argv[1])).get("ini
 bash "$HERE/export_snapshot.sh" "$START" "$OUT/start.pt" "$OUT/export_start" \
     "benchmarks/final_choice.sh: stage 3 of $OUT started from this network"
 CHOSEN=$(python "$HERE/select_snapshot.py" --candidates "$OUT/start.pt" "$OUT/avg.pt" \
-    --method ours_ti --budget 4 5 --episodes "$EPISODES" --first "$FIRST" --workers 2 \
+    --method ours_ti --budget "${BUDGETS[@]}" --episodes "$EPISODES" --first "$FIRST" --workers 2 \
     --heldout-set "$HELDOUT_SET" \
     --out "$OUT/final_select.json" | tail -1)
 cp "$CHOSEN" "$OUT/final.pt"

@@ -48,7 +48,7 @@ MARGIN = 1.5
 # The slowest stage 3 measured made about one update a minute (float32, AMD EPYC): its
 # first snapshot (update 5) and some slack.
 FLOOR = 8.0
-FINAL_BUDGETS = (4.0, 5.0)  # benchmarks/final_choice.sh
+FINAL_BUDGETS = (4.0, 5.0)  # benchmarks/final_choice.sh's default (its FINAL_BUDGETS)
 FINAL_CANDIDATES = 2  # stage 3's start and its average
 
 
@@ -61,9 +61,11 @@ def work(choice: dict) -> float:
     return len(choice["candidates"]) * sum(e * b for e, b in zip(episodes, budgets))
 
 
-def final_seconds(select: dict, final_episodes: int) -> float:
-    """The final choice's seconds estimated from the start choice's (MARGIN 1)."""
-    planned = FINAL_CANDIDATES * sum(final_episodes * b for b in FINAL_BUDGETS)
+def final_seconds(select: dict, final_episodes: int,
+                  budgets: tuple[float, ...] = FINAL_BUDGETS) -> float:
+    """The final choice's seconds estimated from the start choice's (MARGIN 1): the work
+    (episodes x budget) scales them."""
+    planned = FINAL_CANDIDATES * sum(final_episodes * b for b in budgets)
     return select["seconds"] * planned / work(select)
 
 
@@ -76,14 +78,14 @@ def started(wall: Path) -> datetime:
 
 
 def plan(elapsed: float, minutes: float, deadline: float, select: dict | None, final: bool,
-         final_episodes: int) -> dict:
+         final_episodes: int, final_budgets: tuple[float, ...] = FINAL_BUDGETS) -> dict:
     """Stage 3's minutes (0: skip it) and the figures they come from."""
     estimate = None
     if final:
         if select is None:
             raise ValueError("FINAL=1 under a deadline needs the start choice's seconds "
                              "(SELECT=1's select.json) to estimate the final choice's")
-        estimate = final_seconds(select, final_episodes) * MARGIN / 60
+        estimate = final_seconds(select, final_episodes, final_budgets) * MARGIN / 60
     reserve = ALLOWANCE + (estimate or 0.0)
     left = deadline - elapsed - reserve
     given = 0.0 if left < FLOOR else min(minutes, left)
@@ -151,6 +153,8 @@ def main() -> None:
     p.add_argument("--select", type=Path, help="the start choice's select.json")
     p.add_argument("--final", action="store_true", help="FINAL=1: a final choice follows")
     p.add_argument("--final-episodes", type=int, default=64)
+    p.add_argument("--final-budgets", type=float, nargs="+", default=list(FINAL_BUDGETS),
+                   help="the final choice's budgets (final_choice.sh's FINAL_BUDGETS)")
     p.add_argument("--out", type=Path, help="write the plan here (JSON)")
     args = p.parse_args()
     if args.calibrate:
@@ -159,13 +163,14 @@ def main() -> None:
     if args.wall is None or args.minutes is None or args.deadline is None:
         p.error("--wall, --minutes and --deadline are needed (or --calibrate)")
     if not (math.isfinite(args.deadline) and args.deadline > 0 and args.minutes > 0
-            and args.final_episodes >= 2):
-        p.error("--deadline and --minutes must be positive, --final-episodes >= 2")
+            and args.final_episodes >= 2 and all(b > 0 for b in args.final_budgets)):
+        p.error("--deadline and --minutes must be positive, --final-episodes >= 2, "
+                "--final-budgets positive")
     select = json.loads(args.select.read_text()) if args.select else None
     try:
         elapsed = (datetime.now(timezone.utc) - started(args.wall)).total_seconds() / 60
         found = plan(elapsed, args.minutes, args.deadline, select, args.final,
-                     args.final_episodes)
+                     args.final_episodes, tuple(args.final_budgets))
     except ValueError as e:
         p.error(str(e))
     if args.out:

@@ -64,7 +64,7 @@
 # still start fresh episodes every 160 env steps: at equal frames, updates and minutes on
 # this box, 128 x 20 with reset_every=8 learned far more than 16 x 160 in two seed pairs
 # (docs/results.md, "A fifth lent GPU"). W must divide 160.
-# Usage: [WIDE=8] [SELECT=1 [SELECT_BUDGETS="2 5" SELECT_EPISODES="160 64"]] [POP=2] [FINAL=1 | STAGE3=0] [DEADLINE=120] [OVERRIDES="k=v ..."] [UPDATES="U1 U2 U3"] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
+# Usage: [WIDE=8] [SELECT=1 [SELECT_BUDGETS="2 5" SELECT_EPISODES="160 64"]] [POP=2] [FINAL=1 [FINAL_BUDGETS="4 5"] | STAGE3=0] [DEADLINE=120] [OVERRIDES="k=v ..."] [UPDATES="U1 U2 U3"] bash benchmarks/train_2h.sh OUT_DIR [SEED] [M1 M2 M3] [LR3]
 # UPDATES (smoke runs and tests; 2026-11-28) stops the stages after U1, U2 and U3 updates
 # instead of M1, M2 and M3 minutes, so that a busy machine makes the same run (stage 3
 # needs 5 updates for a snapshot to average); with STAGE3=0 it is "U1 U2", and M3 and LR3
@@ -126,13 +126,21 @@ for n in "${SELECT_EPS[@]}" "${FINAL_EPISODES:-64}"; do  # not found out after t
     [[ $n =~ ^[0-9]+$ ]] && ((n >= 2)) \
         || { echo "train_2h.sh: SELECT_EPISODES and FINAL_EPISODES must be integers >= 2, got '$n'" >&2; exit 2; }
 done
-for b in "${SELECT_BS[@]}"; do
-    [[ $b =~ ^[0-9]+([.][0-9]+)?$ ]] && [[ ! $b =~ ^0+([.]0+)?$ ]] \
-        || { echo "train_2h.sh: SELECT_BUDGETS must be positive numbers, got '$b'" >&2; exit 2; }
-done
-((${#SELECT_BS[@]} >= 1)) && python -c "import sys; b = [float(x) for x in sys.argv[1:]]
-sys.exit(len(set(b)) != len(b))" "${SELECT_BS[@]}" \
-    || { echo "train_2h.sh: SELECT_BUDGETS must name each budget once, got '$SELECT_BUDGETS'" >&2; exit 2; }
+check_budgets() {  # NAME VALUE: positive numbers, each once
+    local name=$1 b bs
+    read -ra bs <<< "$2"
+    for b in "${bs[@]}"; do
+        [[ $b =~ ^[0-9]+([.][0-9]+)?$ ]] && [[ ! $b =~ ^0+([.]0+)?$ ]] \
+            || { echo "train_2h.sh: $name must be positive numbers, got '$b'" >&2; exit 2; }
+    done
+    ((${#bs[@]} >= 1)) && python -c "import sys; b = [float(x) for x in sys.argv[1:]]
+sys.exit(len(set(b)) != len(b))" "${bs[@]}" \
+        || { echo "train_2h.sh: $name must name each budget once, got '$2'" >&2; exit 2; }
+}
+check_budgets SELECT_BUDGETS "$SELECT_BUDGETS"
+# The final choice's budgets (FINAL=1; benchmarks/final_choice.sh): B = 4 and 5 unless typed.
+export FINAL_BUDGETS=${FINAL_BUDGETS:-4 5}
+check_budgets FINAL_BUDGETS "$FINAL_BUDGETS"
 ((${#SELECT_EPS[@]} == 1 || ${#SELECT_EPS[@]} == ${#SELECT_BS[@]})) \
     || { echo "train_2h.sh: SELECT_EPISODES takes one count or one per budget of SELECT_BUDGETS ('$SELECT_BUDGETS'), got '$SELECT_EPISODES'" >&2; exit 2; }
 WIDE=${WIDE:-1}
@@ -239,7 +247,8 @@ WHY_NO3="with STAGE3=0"
 if [[ $STAGE3 == 1 && $DEADLINE != 0 ]]; then  # stage 3's minutes under it
     S3ARGS=(--wall "$OUT/wall.txt" --minutes "$M3" --deadline "$DEADLINE" --out "$OUT/deadline.json")
     [[ $SELECT == 1 ]] && S3ARGS+=(--select "$OUT/select.json")
-    [[ $FINAL == 1 ]] && S3ARGS+=(--final --final-episodes "${FINAL_EPISODES:-64}")
+    read -ra FINAL_BS <<< "$FINAL_BUDGETS"
+    [[ $FINAL == 1 ]] && S3ARGS+=(--final --final-episodes "${FINAL_EPISODES:-64}" --final-budgets "${FINAL_BS[@]}")
     M3=$(python "$HERE/stage3_minutes.py" "${S3ARGS[@]}")
     L3=(total_updates=100000 max_minutes="$M3")
     if [[ $M3 == 0 ]]; then

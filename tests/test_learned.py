@@ -655,6 +655,8 @@ def test_train_gpu_keeps_the_frames_per_update_and_the_steps_between_fresh_start
     ("SELECT_BUDGETS", "2 0", "SELECT_BUDGETS must be positive numbers, got '0'"),
     ("SELECT_BUDGETS", "2 2.0", "SELECT_BUDGETS must name each budget once, got '2 2.0'"),
     ("SELECT_BUDGETS", " ", "SELECT_BUDGETS must name each budget once"),
+    ("FINAL_BUDGETS", "4 x", "FINAL_BUDGETS must be positive numbers, got 'x'"),
+    ("FINAL_BUDGETS", "4 5 4.0", "FINAL_BUDGETS must name each budget once, got '4 5 4.0'"),
     ("HELDOUT_SET", "3", "HELDOUT_SET must be 1 or 2, got '3'"),
     ("POP", "3", "POP must be 1 or 2, got '3'"), ("POP", "2", "POP=2 needs SELECT=1"),
     ("UPDATES", "1 2", "UPDATES must be three positive integers (stages 1, 2 and 3), got '1 2'"),
@@ -895,10 +897,19 @@ def test_stage3_minutes_leaves_room_for_the_final_choice(tmp_path):
     proc = _stage3_minutes(tmp_path, "--select", str(tmp_path / "select.json"), "--final",
                            spent=102.5)
     assert float(proc.stdout) == 0 and "no stage 3" in proc.stderr
+    # FINAL_BUDGETS="2 4 5": 2 x 64 x 11 = 1408 episode-budgets, 600 s x 1408 / 1728 x 1.5
+    # = 12.22 minutes reserved, so stage 3 gets 120 - 90 - 2 - 12.22 = 15.78
+    proc = _stage3_minutes(tmp_path, "--select", str(tmp_path / "select.json"), "--final",
+                           "--final-budgets", "2", "4", "5", "--out", str(tmp_path / "plan.json"))
+    assert proc.returncode == 0, proc.stderr
+    assert float(proc.stdout) == pytest.approx(15.78, abs=0.05)
+    assert json.loads((tmp_path / "plan.json").read_text())["final_estimate"] == pytest.approx(
+        12.22, abs=0.01)
 
 
 @pytest.mark.parametrize(("args", "wall", "message"), [
     (["--final"], None, "needs the start choice's seconds (SELECT=1's select.json)"),
+    (["--final-budgets", "4", "0"], None, "--final-budgets positive"),
     ([], "begun 2026-12-03T16:01:13Z\n", "the first line is not 'start <time>'")])
 def test_stage3_minutes_bad_input_is_a_clear_error(tmp_path, args, wall, message):
     proc = _stage3_minutes(tmp_path, *args, wall=wall)
@@ -1026,7 +1037,8 @@ def test_final_choice_exports_a_stage2_snapshot_start(tmp_path):
     (run / "avg.json").write_text(json.dumps({"init": {"path": str(start)}}))
     script = Path(__file__).parents[1] / "benchmarks" / "final_choice.sh"
     proc = subprocess.run(["bash", str(script), str(run)], capture_output=True, text=True,
-                          timeout=600, env={**os.environ, "FINAL_EPISODES": "2"})
+                          timeout=600, env={**os.environ, "FINAL_EPISODES": "2",
+                                            "FINAL_BUDGETS": "2 5"})
     assert proc.returncode == 0, proc.stderr[-3000:]
     card = json.loads((run / "start.json").read_text())
     assert card["selected_update"] == 1 and "stage 3 of" in card["selected_by"]
@@ -1035,6 +1047,7 @@ def test_final_choice_exports_a_stage2_snapshot_start(tmp_path):
     assert all(torch.equal(ours[k], theirs[k]) for k in theirs)
     final = json.loads((run / "final_select.json").read_text())
     assert final["first"] == 160 and final["episodes"] == 2
+    assert final["budget"] == [2.0, 5.0]  # FINAL_BUDGETS, not the default 4 5
     chosen = Path(final["chosen"]["path"])
     assert (run / "final.pt").read_bytes() == chosen.read_bytes()
     assert (run / "final.json").read_text() == chosen.with_suffix(".json").read_text()
