@@ -27,12 +27,10 @@ OUT=${1:?usage: final_choice.sh OUT_DIR}
 EPISODES=${FINAL_EPISODES:-64}
 FIRST=${FINAL_FIRST:-160}
 HELDOUT_SET=${HELDOUT_SET:-2}
-read -ra BUDGETS <<< "${FINAL_BUDGETS:-4 5}"
-for b in "${BUDGETS[@]}"; do
-    [[ $b =~ ^[0-9]+([.][0-9]+)?$ ]] && [[ ! $b =~ ^0+([.]0+)?$ ]] \
-        || { echo "final_choice.sh: FINAL_BUDGETS must be positive numbers, got '$b'" >&2; exit 2; }
-done
-((${#BUDGETS[@]} >= 1)) || { echo "final_choice.sh: FINAL_BUDGETS names no budget" >&2; exit 2; }
+source "$(dirname "$0")/budgets.sh"
+FINAL_BUDGETS=${FINAL_BUDGETS:-$FINAL_BUDGETS_DEFAULT}
+check_budgets FINAL_BUDGETS "$FINAL_BUDGETS"
+read -ra BUDGETS <<< "$FINAL_BUDGETS"
 [[ $HELDOUT_SET == 1 || $HELDOUT_SET == 2 ]] \
     || { echo "final_choice.sh: HELDOUT_SET must be 1 or 2, got '$HELDOUT_SET'" >&2; exit 2; }
 HERE=$(dirname "$0")

@@ -126,20 +126,10 @@ for n in "${SELECT_EPS[@]}" "${FINAL_EPISODES:-64}"; do  # not found out after t
     [[ $n =~ ^[0-9]+$ ]] && ((n >= 2)) \
         || { echo "train_2h.sh: SELECT_EPISODES and FINAL_EPISODES must be integers >= 2, got '$n'" >&2; exit 2; }
 done
-check_budgets() {  # NAME VALUE: positive numbers, each once
-    local name=$1 b bs
-    read -ra bs <<< "$2"
-    for b in "${bs[@]}"; do
-        [[ $b =~ ^[0-9]+([.][0-9]+)?$ ]] && [[ ! $b =~ ^0+([.]0+)?$ ]] \
-            || { echo "train_2h.sh: $name must be positive numbers, got '$b'" >&2; exit 2; }
-    done
-    ((${#bs[@]} >= 1)) && python -c "import sys; b = [float(x) for x in sys.argv[1:]]
-sys.exit(len(set(b)) != len(b))" "${bs[@]}" \
-        || { echo "train_2h.sh: $name must name each budget once, got '$2'" >&2; exit 2; }
-}
+source "$(dirname "$0")/budgets.sh"
 check_budgets SELECT_BUDGETS "$SELECT_BUDGETS"
 # The final choice's budgets (FINAL=1; benchmarks/final_choice.sh): B = 4 and 5 unless typed.
-export FINAL_BUDGETS=${FINAL_BUDGETS:-4 5}
+export FINAL_BUDGETS=${FINAL_BUDGETS:-$FINAL_BUDGETS_DEFAULT}
 check_budgets FINAL_BUDGETS "$FINAL_BUDGETS"
 ((${#SELECT_EPS[@]} == 1 || ${#SELECT_EPS[@]} == ${#SELECT_BS[@]})) \
     || { echo "train_2h.sh: SELECT_EPISODES takes one count or one per budget of SELECT_BUDGETS ('$SELECT_BUDGETS'), got '$SELECT_EPISODES'" >&2; exit 2; }
