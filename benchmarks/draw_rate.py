@@ -15,8 +15,9 @@ With ``--plot PATH``, a figure of every draw's two deciding margins, the table's
 minus ``sga_rrt_0.3_0.4`` and B = 5 minus ``catnipp_ti`` (each with two standard errors),
 coloured by whether the draw met the target: where the draws miss, at a glance.
 
-Families, from the switches in the table's recipe cell (its first code span): ``WIDE=8``
-(every stage's frames as 8x the envs for 1/8 of the steps), ``STAGE3=0``
+Families, from the switches in the table's recipe cell (its first code span):
+``WIDE=8 FINAL_BUDGETS="2 4 5"`` (``WIDE=8`` whose final choice scores B = 2 as well),
+``WIDE=8`` (every stage's frames as 8x the envs for 1/8 of the steps), ``STAGE3=0``
 (no stage 3: its minutes go to stage 2), ``POP=2`` (two seeds side by side, the better kept
 on held-out episodes), ``SELECT=1 FINAL=1``, ``SELECT=1`` and ``fixed`` (no switches, the
 first draws); "all" pools them. A family whose draws trained in both precisions (the
@@ -35,14 +36,16 @@ from draw_signals import outcomes, switches
 from scipy.stats import beta
 
 # tested in order: WIDE=8 (every stage 8x the envs for 1/8 of the steps) is a family of
-# its own, not counted with the POP=2 draws whose switches it also has
-FAMILIES = ("WIDE=8", "STAGE3=0", "POP=2", "SELECT=1 FINAL=1", "SELECT=1")
+# its own, not counted with the POP=2 draws whose switches it also has, and the WIDE=8
+# draws whose final choice also scored B = 2 are one of theirs, not counted with WIDE=8's
+FAMILIES = ('WIDE=8 FINAL_BUDGETS="2 4 5"', "WIDE=8", "STAGE3=0", "POP=2",
+            "SELECT=1 FINAL=1", "SELECT=1")
 
 
 def family(recipe: str) -> str:
     """The first family whose switches all appear in the recipe cell's first code span;
     "fixed" when none does."""
-    return next((f for f in FAMILIES if set(f.split()) <= switches(recipe)), "fixed")
+    return next((f for f in FAMILIES if switches(f"`{f}`") <= switches(recipe)), "fixed")
 
 
 def clopper_pearson(k: int, n: int, level: float) -> tuple[float, float]:
@@ -64,7 +67,8 @@ def met(outcome: dict) -> bool:
     return outcome["met"].startswith(("in the means", "by a margin"))
 
 
-def print_rate(name: str, ds: list[int], draws: dict[int, dict], level: float) -> None:
+def print_rate(name: str, ds: list[int], draws: dict[int, dict], level: float,
+               width: int = 18) -> None:
     """One line of the table: the draws met in the means, and of them within two hours."""
     hits = [d for d in ds if met(draws[d])]
     timely = [d for d in hits if "over 2 h" not in draws[d]["met"]]
@@ -72,7 +76,7 @@ def print_rate(name: str, ds: list[int], draws: dict[int, dict], level: float) -
     for k in (len(hits), len(timely)):
         lo, hi = clopper_pearson(k, len(ds), level)
         cells.append(f"{k:2d} ({lo:4.0%} to {hi:4.0%})")
-    print(f"{name:18} {len(ds):5d}  {cells[0]:18}  {cells[1]:18}  "
+    print(f"{name:{width}} {len(ds):5d}  {cells[0]:18}  {cells[1]:18}  "
           f"{', '.join(map(str, hits))}")
 
 
@@ -126,15 +130,16 @@ def main() -> None:
     for d, o in sorted(draws.items()):
         groups.setdefault(family(o["recipe"]), []).append(d)
     groups["all"] = sorted(draws)
-    print(f"{'family':18} {'draws':>5}  {'met':18}  {'met within 2 h':18}  draws met")
+    width = max(18, *map(len, groups))
+    print(f"{'family':{width}} {'draws':>5}  {'met':18}  {'met within 2 h':18}  draws met")
     for name, ds in groups.items():
-        print_rate(name, ds, draws, args.level)
+        print_rate(name, ds, draws, args.level, width)
         by_precision: dict[str, list[int]] = {}
         for d in ds:
             by_precision.setdefault(precision(draws[d]["recipe"]), []).append(d)
         if name != "all" and len(by_precision) > 1:  # a family that mixes precisions
             for prec, pds in sorted(by_precision.items()):
-                print_rate(f"  {prec}", pds, draws, args.level)
+                print_rate(f"  {prec}", pds, draws, args.level, width)
     print(f"(exact {args.level:.0%} intervals for each rate)")
     missed = [d for d, o in draws.items() if not met(o)]
     behind = [d for d in missed if draws[d]["B5_minus_ti"] > 0]

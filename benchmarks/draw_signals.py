@@ -20,6 +20,7 @@ import argparse
 import itertools
 import json
 import re
+import shlex
 from pathlib import Path
 
 import numpy as np
@@ -123,9 +124,10 @@ def outcomes() -> dict[int, dict]:
 
 
 def switches(recipe: str) -> set[str]:
-    """The switches of a recipe cell: the words of its first code span (none: "fixed")."""
+    """The switches of a recipe cell: the words of its first code span (none: "fixed"), as
+    the shell splits them (``FINAL_BUDGETS="2 4 5"`` is one switch, ``FINAL_BUDGETS=2 4 5``)."""
     span = re.search(r"`([^`]*)`", recipe)
-    return set(span.group(1).split()) if span else set()
+    return set(shlex.split(span.group(1))) if span else set()
 
 
 def window_mean(rows: list[dict], key: str) -> float:

@@ -2011,3 +2011,21 @@ def test_draw_figures_reprints_a_shipped_draws_figures():
     proc = subprocess.run(["bash", str(script), "docs/cards/no_such_draw"],
                           capture_output=True, text=True)
     assert proc.returncode == 2 and "no card docs/cards/no_such_draw.json" in proc.stderr
+
+
+def test_draw_rate_families_keep_a_quoted_switch_whole(monkeypatch):
+    """benchmarks/draw_rate.py counts draws per recipe family from the table's recipe cell:
+    ``FINAL_BUDGETS="2 4 5"`` is one switch, so those WIDE=8 draws are a family of their
+    own, and a WIDE=8 cell without it stays WIDE=8's."""
+    monkeypatch.syspath_prepend(str(Path(__file__).parents[1] / "benchmarks"))
+    from draw_rate import family
+    from draw_signals import switches
+
+    cell = '`WIDE=8 POP=2 SELECT=1 FINAL=1 FINAL_BUDGETS="2 4 5"`, bf16, 115.0 min'
+    assert switches(cell) == {"WIDE=8", "POP=2", "SELECT=1", "FINAL=1",
+                              "FINAL_BUDGETS=2 4 5"}  # as the shell splits it
+    assert family(cell) == 'WIDE=8 FINAL_BUDGETS="2 4 5"'
+    assert family("`WIDE=8 POP=2 SELECT=1 FINAL=1`, bf16") == "WIDE=8"
+    assert family('`WIDE=8 FINAL_BUDGETS="2 5"`, bf16') == "WIDE=8"  # another value
+    assert family("`POP=2 SELECT=1`, bf16") == "POP=2"
+    assert family("the defaults, float32") == "fixed"  # no code span, no switches
