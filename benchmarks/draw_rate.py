@@ -8,7 +8,7 @@ handful of draws per recipe, the interval says how little the count alone pins d
 Then how many of the draws that missed were behind ``catnipp_ti`` at B = 5 in the mean,
 and, per family, at which of the table's deciding budgets (B = 2, 4, 5) each missed draw
 was behind,
-which draw has the lowest score at each budget, each family's shortest and longest run
+which draws have the three lowest scores at each budget, each family's shortest and longest run
 (where the recipe cell states its minutes), and how often the ``FINAL=1`` draws' final
 choice kept stage 3's start over its average (the cells' "(start kept)" / "(average kept)").
 With ``--plot PATH``, a figure of every draw's two deciding margins, the table's B = 2
@@ -40,12 +40,15 @@ from scipy.stats import beta
 # draws whose final choice also scored B = 2 are one of theirs, not counted with WIDE=8's
 FAMILIES = ('WIDE=8 FINAL_BUDGETS="2 4 5"', "WIDE=8", "STAGE3=0", "POP=2",
             "SELECT=1 FINAL=1", "SELECT=1")
+# each family's switches, split once as a recipe cell's are
+FAMILY_SWITCHES = {f: switches(f"`{f}`") for f in FAMILIES}
 
 
 def family(recipe: str) -> str:
     """The first family whose switches all appear in the recipe cell's first code span;
     "fixed" when none does."""
-    return next((f for f in FAMILIES if switches(f"`{f}`") <= switches(recipe)), "fixed")
+    found = switches(recipe)
+    return next((f for f in FAMILIES if FAMILY_SWITCHES[f] <= found), "fixed")
 
 
 def clopper_pearson(k: int, n: int, level: float) -> tuple[float, float]:
@@ -152,9 +155,10 @@ def main() -> None:
         if behind_at and name != "all":  # the families' lines already list every draw
             print(f"missed, {name}, behind at (of the table's B = 2, 4, 5): " + ", ".join(
                 f"{d} B = {'/'.join(map(str, bs)) or 'none'}" for d, bs in behind_at.items()))
-    for budget in (2, 3, 4, 5):
-        best = min(draws, key=lambda d: draws[d]["scores"][budget])
-        print(f"lowest B = {budget}: {draws[best]['scores'][budget]} (draw {best})")
+    for budget in (2, 3, 4, 5):  # the lowest, then the next two (where a draw ranks)
+        low = sorted(draws, key=lambda d: draws[d]["scores"][budget])[:3]
+        print(f"lowest B = {budget}: " + ", ".join(
+            f"{draws[d]['scores'][budget]} (draw {d})" for d in low))
     for name, ds in groups.items():
         timed = {d: draws[d]["minutes"] for d in ds if draws[d]["minutes"] is not None}
         if timed:
