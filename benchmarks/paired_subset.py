@@ -158,7 +158,8 @@ def paired(subset: Path, suite: str, method: str, results: Path, against: list[s
                   f" (median {st.median(rows[k]['trace'] for k in keys):.1f})"
                   f"  traps {st.mean(rows[k]['traps'] for k in keys):.2f}"
                   f"  minus {against[0]} {diff:+6.2f} ± {se:.2f}"
-                  f"  wins {sum(v < 0 for v in d.values())}  {parts}"
+                  + (f" (z {diff / se:+.1f})" if se else "")  # as select_snapshot --show
+                  + f"  wins {sum(v < 0 for v in d.values())}  {parts}"
                   f"  worst {rows[worst]['trace']:.1f} (instance {worst[1]} trial {worst[2]})")
 
 

@@ -1151,6 +1151,7 @@ def test_paired_subset_leaves_out_excluded_episodes_and_names_the_worst(tmp_path
     assert "2 episodes" in kept.stdout
     assert "left out: instance 2 trial 5: Tr(P_f) 700.0  traps 1" in kept.stdout
     assert "minus m  -0.50 ± 1.50" in kept.stdout  # mean of (-2, +1) and its standard error
+    assert "minus m  -0.50 ± 1.50 (z -0.3)" in kept.stdout  # the difference in standard errors
     bad = subprocess.run(args + ["--exclude", "2"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "expected INSTANCE:TRIAL" in bad.stderr
 
