@@ -56,6 +56,12 @@ def mean_se(values: list[float]) -> tuple[float, float]:
     return st.mean(values), se
 
 
+def z_text(diff: float, se: float) -> str:
+    """A paired difference in standard errors, as the docs quote it: " (z -1.1)"; empty
+    where the error is 0 (a run against itself) or undefined (one episode)."""
+    return f" (z {diff / se:+.1f})" if se > 0 else ""
+
+
 def heldout(paths: list[str], episodes: int, budgets: list[float], methods: list[str],
             cache: Path | None = None, first: int = 0,
             reference: tuple[str, str] | None = None, heldout_set: int = 2) -> None:
@@ -158,7 +164,7 @@ def paired(subset: Path, suite: str, method: str, results: Path, against: list[s
                   f" (median {st.median(rows[k]['trace'] for k in keys):.1f})"
                   f"  traps {st.mean(rows[k]['traps'] for k in keys):.2f}"
                   f"  minus {against[0]} {diff:+6.2f} ± {se:.2f}"
-                  + (f" (z {diff / se:+.1f})" if se else "")  # as select_snapshot --show
+                  + z_text(diff, se)
                   + f"  wins {sum(v < 0 for v in d.values())}  {parts}"
                   f"  worst {rows[worst]['trace']:.1f} (instance {worst[1]} trial {worst[2]})")
 

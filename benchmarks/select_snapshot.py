@@ -42,7 +42,7 @@ from multiprocessing import get_context
 from pathlib import Path
 
 import torch
-from paired_subset import mean_se
+from paired_subset import mean_se, z_text
 
 from maipp_bench.heldout import add_heldout_argument
 
@@ -90,23 +90,30 @@ def _traces(path: str, method: str, budget: float, episodes: int, first: int,
     return [r["trace"] for r in rows]
 
 
+def differences(row: dict) -> str:
+    """A candidate's paired differences against the last candidate, one per budget, each
+    with its z; empty for the last candidate itself (its errors are 0)."""
+    # main() keys one budget as minus_end / se, several as minus_end_B<b> / se_B<b>.
+    suffixes = [k.removeprefix("minus_end") for k in row if k.startswith("minus_end")]
+    return "  ".join(f"{s.lstrip('_') or 'all'}: {row['minus_end' + s]:+.2f} ± "
+                     f"{row['se' + s]:.2f}{z_text(row['minus_end' + s], row['se' + s])}"
+                     for s in suffixes if row["se" + s] > 0)
+
+
 def margins(choice: dict) -> list[str]:
     """A written choice's margins, as the docs quote them ("kept X by D", "N standard
     errors"): each other candidate's score minus the chosen one's (lower is better) and
-    the z of each of its paired differences against the last candidate."""
+    the paired differences of every candidate, the chosen one included, against the last."""
     best = choice["chosen"]
-    lines = [f"chosen: update {best['update']} ({best['path']}), score {best['mean']:.2f}"]
+    own = differences(best)
+    lines = [f"chosen: update {best['update']} ({best['path']}), score {best['mean']:.2f}"
+             + (f"; minus the last candidate: {own}" if own else "")]
     for row in choice["candidates"]:
         if row["position"] == best["position"]:
             continue
-        # main() keys one budget as minus_end / se, several as minus_end_B<b> / se_B<b>.
-        suffixes = [k.removeprefix("minus_end") for k in row if k.startswith("minus_end")]
-        diffs = "  ".join(f"{s.lstrip('_') or 'all'}: {row['minus_end' + s]:+.2f} ± "
-                          f"{row['se' + s]:.2f} (z {row['minus_end' + s] / row['se' + s]:+.1f})"
-                          for s in suffixes if row["se" + s] > 0) or "none (it is the last)"
         lines.append(f"  update {row['update']} ({row['path']}): {row['mean']:.2f}, "
                      f"{row['mean'] - best['mean']:+.2f} behind the chosen; "
-                     f"minus the last candidate: {diffs}")
+                     f"minus the last candidate: {differences(row) or 'none (it is the last)'}")
     return lines
 
 

@@ -1053,6 +1053,26 @@ def test_final_choice_exports_a_stage2_snapshot_start(tmp_path):
     assert (run / "final.json").read_text() == chosen.with_suffix(".json").read_text()
 
 
+def test_select_snapshot_show_prints_every_candidates_paired_z(monkeypatch) -> None:
+    """select_snapshot.py --show: the docs' "N standard errors" of a held-out choice come
+    from this output, the chosen candidate's own differences against the last included."""
+    monkeypatch.syspath_prepend(str(Path(__file__).parents[1] / "benchmarks"))
+    from select_snapshot import margins
+
+    start = {"update": 9, "path": "start.pt", "mean": 10.0, "position": 0,
+             "minus_end_B2": 1.0, "se_B2": 4.0, "minus_end_B5": -0.9, "se_B5": 0.3}
+    last = {"update": 4, "path": "avg.pt", "mean": 10.5, "position": 1,
+            "minus_end_B2": 0.0, "se_B2": 0.0, "minus_end_B5": 0.0, "se_B5": 0.0}
+    chosen, other = margins({"chosen": start, "candidates": [start, last]})
+    assert chosen == ("chosen: update 9 (start.pt), score 10.00; minus the last candidate: "
+                      "B2: +1.00 ± 4.00 (z +0.2)  B5: -0.90 ± 0.30 (z -3.0)")
+    assert other == ("  update 4 (avg.pt): 10.50, +0.50 behind the chosen; "
+                     "minus the last candidate: none (it is the last)")
+    # the last candidate chosen: no differences of its own to print
+    assert margins({"chosen": last, "candidates": [start, last]})[0] == (
+        "chosen: update 4 (avg.pt), score 10.50")
+
+
 def test_select_snapshot_scores_the_window_and_picks_the_lowest(tiny_checkpoint, tmp_path,
                                                                 monkeypatch, capsys):
     """benchmarks/select_snapshot.py (train_2h.sh's SELECT=1): the candidates are the run's
