@@ -1,0 +1,90 @@
+"""benchmarks/draw_section.py: a two-hour draw's section and table row of docs/results.md,
+rendered from the draw's committed cards, agree with what the docs say."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).parents[1]
+RESULTS = ROOT / "docs" / "results.md"
+CARDS = "docs/cards/ours_2h_intent_seed{}_bf16_final_h2_pop2_wide8_fb245"
+
+
+@pytest.fixture
+def draw_section(monkeypatch):
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    import draw_section
+
+    return draw_section
+
+
+def _args(draw: int, *extra: str) -> list[str]:
+    """Draw N's command line: table draws 60-63 are seeds 57-60."""
+    return [CARDS.format(draw - 3), "--draw", str(draw), "--previous",
+            CARDS.format(draw - 4), *extra]
+
+
+def _written(ordinal: str) -> str:
+    """The hand-written section of a draw, from its bold title to the next one, its line
+    breaks as spaces."""
+    text = RESULTS.read_text()
+    start = text.index(f"**A {ordinal} run:")
+    return " ".join(text[start:text.index("\n\n**", start + 1)].split())
+
+
+def test_ordinal_names_draws_as_the_docs_do(draw_section):
+    words = {1: "first", 2: "second", 12: "twelfth", 20: "twentieth", 21: "twenty-first",
+             40: "fortieth", 63: "sixty-third", 64: "sixty-fourth", 99: "ninety-ninth"}
+    assert {n: draw_section.ordinal(n) for n in words} == words
+    for bad in (0, 100):
+        with pytest.raises(ValueError, match="1-99"):
+            draw_section.ordinal(bad)
+
+
+def test_row_reproduces_the_hand_written_row_of_the_sixty_third_draw(draw_section):
+    rendered = draw_section.render(_args(63, "--row"))
+    assert rendered.startswith("| 63 | ")
+    assert rendered in RESULTS.read_text().splitlines()
+
+
+@pytest.mark.parametrize("draw, ordinal, figures", [
+    # the final choice kept stage 3's average
+    (63, "sixty-third", ["**116.0 minutes**", "**105 and 104**", "58.4 and 58.0",
+                         "208 and 198", "113.7 and 103.1", "The start choice (414 s)",
+                         "**seed 60's update 207**", "by 1.37", "by 1.4 standard errors",
+                         "**trimmed stage 3 to 25.16 minutes**",
+                         "105.0 frames/s over updates 1-60", "357 s, 1.06x its estimate",
+                         "by 0.46", "+0.53 ± 0.61", "**115.5 / 53.7 / 33.4 / 24.3**",
+                         "11:05:40-11:18:55 UTC", "1.37 ± 0.85 paired", "145 wins of 300",
+                         "Its 187 untrapped episodes lead by 0.56 ± 0.44", "0.70 ± 0.52",
+                         "--exclude 631268:712092", "`..._stage3_start.json`"]),
+    # the final choice kept stage 3's start: stage 3's curve is the set-aside average's card
+    (61, "sixty-first", ["**116.2 minutes**", "**99 and 98**", "188 and 184",
+                         "**seed 1058's update 183**", "by 0.56", "trailed by 1.9",
+                         "**trimmed stage 3 to 23.73 minutes**", "Stage 3 made 55 updates",
+                         "96.8 frames/s over updates 1-55", "kept **stage 3's start**",
+                         "by 3.21", "-3.84 ± 2.31", "**123.0 / 53.5 / 31.4 / 22.3**",
+                         "0.67 ± 0.78 paired", "184 wins of 300", "1.35 ± 0.38",
+                         "(z -3.6", "`..._stage3_avg.json`"]),
+])
+def test_section_cites_the_figures_of_the_hand_written_section(draw_section, draw, ordinal,
+                                                               figures):
+    """Each figure the generator prints is the one the hand-written section cites."""
+    rendered, written = draw_section.render(_args(draw)), _written(ordinal)
+    assert [f for f in figures if f not in rendered] == []
+    assert [f for f in figures if f not in written] == []
+    # the counts are over the table's draws up to this one, so later rows leave them be
+    assert re.search(rf"all draws 23 of {draw} \(\d+% to \d+%\), 22 within two hours",
+                     rendered)
+
+
+def test_bad_input_gets_a_clear_error(draw_section):
+    with pytest.raises(SystemExit, match="no card docs/cards/no_seed1_draw.json"):
+        draw_section.render(["docs/cards/no_seed1_draw", "--draw", "3", "--previous", "x"])
+    with pytest.raises(SystemExit, match="draw 70 has no row"):
+        draw_section.render([CARDS.format(60), "--draw", "70", "--previous", CARDS.format(59)])
+    with pytest.raises(SystemExit):  # argparse's error: the section needs a draw before
+        draw_section.render([CARDS.format(60), "--draw", "1", "--previous", CARDS.format(59)])
