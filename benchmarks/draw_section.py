@@ -11,7 +11,9 @@ after the marker is what it prints.
 
 ``--row`` prints the table row; add it to the table first, since the section's counts
 (``draw_rate.py``'s) are taken over the table's draws up to this one, so that they do not
-change as later draws are added.
+change as later draws are added. ``--performance`` prints the draw's five rows of
+docs/performance.md's table of two-hour runs (each member's stages 1 and 2, then stage 3),
+which the test also finds there.
 
 Usage:
     python benchmarks/draw_section.py docs/cards/PREFIX --draw 64 \\
@@ -119,6 +121,10 @@ class Draw:
         self.card = self.json("")
         # the recipe's OVERRIDES, as stage 3's command (the card's) carries them
         self.precision = "bf16" if "algo.precision=bf16" in self.card["command"] else "float32"
+        # "x86_64, AMD EPYC, 2 cores, native bf16: yes, ..." (maipp_bench.hardware)
+        self.machine = self.card["machine"].split(", ")[1]
+        self.native = ("native bf16" if "native bf16: yes" in self.card["machine"]
+                       else "no native bf16")
         self.wall = stamps(self.file("_wall.txt"))
         # the run folder, as the wall stamps name it ("stage1 done <time> outputs/h63")
         self.out = next(line.split()[-1] for line in self.file("_wall.txt").read_text()
@@ -399,8 +405,6 @@ def section(draw: Draw, previous: Draw, recipe: str) -> str:
     minutes = draw.minutes()
     start, end = draw.wall["start"], draw.wall["end"]
     seeds = " and ".join(str(m["seed"]) for m in now)
-    machine = draw.card["machine"].split(", ")[1]
-    native = "native bf16" if "native bf16: yes" in draw.card["machine"] else "no native bf16"
     overrides = "OVERRIDES=algo.precision=bf16 " if draw.precision == "bf16" else ""
     cmd = (f"{draw.prefix}_b5_results --results {PAIRED_RESULTS} --method {METHOD} "
            f"--against {PAIRED_AGAINST}")
@@ -409,9 +413,10 @@ def section(draw: Draw, previous: Draw, recipe: str) -> str:
     return "\n".join([
         f"**A {ordinal(draw.number)} run: seed {draw.seed}, `{recipe}` with "
         f"{draw.precision}, under `DEADLINE`** ({start:%Y-%m-%d}).",
-        f"Launched at {draw.card['commit'][:7]} (the card's commit), on a 2-core {machine} box "
-        f"with {native}, scored by `benchmarks/score_draw.py` launched beside it; this section "
-        "is rendered from the cards by `benchmarks/draw_section.py` (the last command):",
+        f"On a 2-core {draw.machine} box with {draw.native} (the cards name commit "
+        f"{draw.card['commit'][:7]}), scored by `benchmarks/score_draw.py` launched beside "
+        "it; this section is rendered from the cards by `benchmarks/draw_section.py` (the "
+        "last command):",
         "",
         "```bash",
         f"{recipe} {overrides}bash benchmarks/train_2h.sh {draw.out} "
@@ -445,12 +450,63 @@ def section(draw: Draw, previous: Draw, recipe: str) -> str:
     ])
 
 
+def _updates(seg: dict) -> int:
+    """How many updates a ``card_segment`` spans ("106-208": 103)."""
+    first, last = map(int, seg["updates"].split("-"))
+    return last - first + 1
+
+
+def _perf_row(label: str, seg: dict) -> str:
+    return (f"| {label} | {_updates(seg)} | "
+            f"{seg['frames']:,} | {seg['decisions']:,} | {seg['wall_s']:,.0f} s | "
+            f"{seg['frames_per_s']:.1f} | {seg['decisions_per_s']:.1f} |")
+
+
+def performance(draw: Draw, previous: Draw, recipe: str) -> str:
+    """The draw's rows of docs/performance.md: ``train_throughput.py --card``'s segments."""
+    plan = draw.json("_deadline.json")
+    start, end = draw.wall["start"], draw.wall["end"]
+    steps = int(re.search(r"steps_per_batch=(\d+)", draw.card["command"])[1])
+    seconds = [d.json(f)["seconds"] for d in (draw, previous)
+               for f in ("_start_choice.json", "_choice.json")]
+    chosen = draw.json("_start_choice.json")["chosen"]
+    rows = []
+    for i, (suffix, member) in enumerate((("_stages12.jsonl", draw.seed),
+                                           ("_m1_stages12.jsonl", draw.seed + 1000))):
+        curve = _jsonl(draw.file(suffix))
+        cut = stage_cuts(curve)[0]
+        one, two = card_segment(curve, 0, cut), card_segment(curve, cut, len(curve))
+        envs = [seg["frames"] // _updates(seg) // steps for seg in (one, two)]
+        first = (f"the same script and fields with `{recipe}`, {draw.precision}, seed "
+                 f"{draw.seed} ({start:%Y-%m-%d, %H:%M}-{end:%H:%M} UTC, a 2-core {draw.machine} "
+                 f"box with {draw.native}; the cards name commit {draw.card['commit'][:7]}; "
+                 f"`DEADLINE={plan['deadline']:g}` gave stage 3 {plan['minutes']:g} minutes; "
+                 f"its held-out choices took {seconds[0]:.0f} s and {seconds[1]:.0f} s against "
+                 f"the {ordinal(previous.number)}'s {seconds[2]:.0f} s and {seconds[3]:.0f} s; "
+                 f"docs/results.md \"A {ordinal(draw.number)} run\"), member seed {member}"
+                 if i == 0 else f"the same, member seed {member} (beside it)")
+        started = (f" (stage 3 started from update {chosen['update']})"
+                   if _member(chosen["path"], draw) == f"seed {member}" else "")
+        rows += [_perf_row(f"{first}, stage 1 ({envs[0]} envs x {steps} steps), updates "
+                           f"{one['updates']}", one),
+                 _perf_row(f"the same, member seed {member}, stage 2 ({envs[1]} envs x "
+                           f"{steps} steps), updates {two['updates']}{started}", two)]
+    curve = draw.stage3["curve"]
+    kept = "start" if final_choice(draw)["kept_start"] else "average"
+    other = "average" if kept == "start" else "start"
+    rows.append(_perf_row(
+        f"the same, stage 3 ({plan['minutes']:g} minutes, both threads), updates "
+        f"1-{len(curve)} ({draw.stage3['run_continued_to']} made; the final choice kept the "
+        f"{kept}; the set-aside {other}'s card, `...{draw.set_aside}`)",
+        card_segment(curve, 0, len(curve))))
+    return "\n".join(rows)
+
+
 def row(draw: Draw, previous: Draw, recipe: str) -> str:
     plan = draw.json("_deadline.json")
     trimmed = (f"stage 3 trimmed to {plan['minutes']:.1f} min" if plan["minutes"] < plan["typed"]
                else "stage 3 not trimmed")
     held = draw.json("_start_choice.json")["heldout_set"]
-    machine = draw.card["machine"].split(", ")[1]
     kept = "start" if final_choice(draw)["kept_start"] else "average"
     speed = pace(draw.members(), previous.members(), "fps1")
     s = scores(draw)
@@ -460,7 +516,7 @@ def row(draw: Draw, previous: Draw, recipe: str) -> str:
     cells = [str(draw.number),
              f"`{recipe}`, {draw.precision}, held-out set {held}, cut defaults, under "
              f"`DEADLINE={plan['deadline']:g}` ({trimmed}), {draw.minutes():.1f} min, "
-             f"{machine}, {speed} the {ordinal(previous.number)}'s in stage 1 ({kept} kept)"
+             f"{draw.machine}, {speed} the {ordinal(previous.number)}'s in stage 1 ({kept} kept)"
              + ("" if draw.minutes() <= 120 else ", over 2 h"),
              str(draw.seed), *(f"{s[b]:.1f}" for b in BUDGETS),
              f"{_signed(*b2, 1)} (v{sga_version()})", f"{_signed(*b4, 1)} (unpaired)",
@@ -475,12 +531,16 @@ def render(argv: list[str]) -> str:
     p.add_argument("--draw", type=int, required=True, help="its number in the table")
     p.add_argument("--previous", required=True, help="the card prefix of the draw before")
     p.add_argument("--recipe", default=RECIPE, help="train_2h.sh's switches for the draw")
-    p.add_argument("--row", action="store_true", help="print the table row instead")
+    what = p.add_mutually_exclusive_group()
+    what.add_argument("--row", action="store_true", help="print the table row instead")
+    what.add_argument("--performance", action="store_true",
+                      help="print the draw's rows of docs/performance.md instead")
     args = p.parse_args(argv)
     if not 1 < args.draw < 100:
         p.error("--draw must be 2-99 (the section compares with the draw before)")
     draw, previous = Draw(args.prefix, args.draw), Draw(args.previous, args.draw - 1)
-    return (row if args.row else section)(draw, previous, args.recipe)
+    render_ = row if args.row else performance if args.performance else section
+    return render_(draw, previous, args.recipe)
 
 
 def main() -> None:

@@ -81,6 +81,17 @@ def test_section_cites_the_figures_of_the_hand_written_section(draw_section, dra
                      rendered)
 
 
+@pytest.mark.parametrize("draw", [61, 63])
+def test_performance_rows_carry_the_figures_of_docs_performance(draw_section, draw):
+    """The five rows' figures (updates, frames, decisions, wall time, rates) are those
+    docs/performance.md wrote up by hand for the draw, from train_throughput.py --card."""
+    perf = [line.split(" | ")[1:] for line in
+            (ROOT / "docs" / "performance.md").read_text().splitlines()]
+    rows = draw_section.render(_args(draw, "--performance")).splitlines()
+    assert len(rows) == 5
+    assert [r for r in rows if r.split(" | ")[1:] not in perf] == []
+
+
 def test_bad_input_gets_a_clear_error(draw_section):
     with pytest.raises(SystemExit, match="no card docs/cards/no_seed1_draw.json"):
         draw_section.render(["docs/cards/no_seed1_draw", "--draw", "3", "--previous", "x"])
