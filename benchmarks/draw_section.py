@@ -118,7 +118,7 @@ class Draw:
         if seed is None:
             raise SystemExit(f"draw_section.py: {prefix}: no _seedN_ in the prefix")
         self.seed = int(seed[1])
-        self.card = self.json("")
+        self.card = self.json(".json")
         # the recipe's OVERRIDES, as stage 3's command (the card's) carries them
         self.precision = "bf16" if "algo.precision=bf16" in self.card["command"] else "float32"
         # "x86_64, AMD EPYC, 2 cores, native bf16: yes, ..." (maipp_bench.hardware)
@@ -149,8 +149,7 @@ class Draw:
         return Path(f"{self.path}{suffix}")
 
     def json(self, suffix: str) -> dict:
-        return json.loads(self.file(f"{suffix}.json" if not suffix.endswith(".json")
-                                    else suffix).read_text())
+        return json.loads(self.file(suffix).read_text())
 
     def minutes(self) -> float:
         return (self.wall["end"] - self.wall["start"]).total_seconds() / 60
