@@ -17,6 +17,7 @@ Usage:
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 import boards
 
@@ -40,6 +41,16 @@ def differences(board: dict, method: str, against: list[str]) -> list[dict]:
     return out
 
 
+def with_rows_from(board: dict, method: str, directory: str | Path) -> dict:
+    """``board`` with ``method``'s rows replaced by those of the same suite's board in
+    ``directory`` (a candidate's, run with ``eval --leaderboards DIR --fresh-board``);
+    exits if that board has none."""
+    theirs = [r for r in boards.load(board["suite"], directory)["rows"] if r["method"] == method]
+    if not theirs:
+        raise SystemExit(f"{method} has no row on {directory}/{board['suite']}.json")
+    return board | {"rows": [r for r in board["rows"] if r["method"] != method] + theirs}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--suite", required=True)
@@ -52,11 +63,7 @@ def main() -> None:
     args = p.parse_args()
     board = boards.load(args.suite, args.leaderboards)
     if args.method_from:
-        other = boards.load(args.suite, args.method_from)
-        theirs = [r for r in other["rows"] if r["method"] == args.method]
-        if not theirs:
-            raise SystemExit(f"{args.method} has no row on {args.method_from}/{args.suite}.json")
-        board["rows"] = [r for r in board["rows"] if r["method"] != args.method] + theirs
+        board = with_rows_from(board, args.method, args.method_from)
     for entry in differences(board, args.method, args.against):
         cells = "  ".join(f"{m} {d:+.1f} ± {se:.1f}" for m, (d, se) in entry["diff"].items())
         print(f"{entry['setting']:>28}  {args.method} {entry['mean']:.1f}  minus: {cells}")

@@ -1,5 +1,5 @@
-"""A two-hour draw's section of docs/results.md, and its row of "All two-hour runs, one
-table", rendered from the draw's committed cards.
+"""A two-hour draw's section of docs/results.md, its row of "All two-hour runs, one
+table" and its rows of docs/performance.md, rendered from the draw's committed cards.
 
 Every figure comes from the cards ``ship_draw.py`` writes under ``docs/cards/PREFIX*``
 and the committed leaderboards, through the functions of the scripts that print them
@@ -7,29 +7,35 @@ and the committed leaderboards, through the functions of the scripts that print 
 ``board_diff.py``, ``paired_subset.py``, ``draw_rate.py``), so that the prose cannot
 drift from the cards: ``tests/test_draw_section.py`` reruns the command of each
 ``<!-- draw_section.py ARGS -->`` marker in docs/results.md and checks that the text
-after the marker is what it prints.
+after the marker is what it prints, that its ``--row`` is in the table and that its
+``--performance`` rows are in docs/performance.md.
 
 ``--row`` prints the table row; add it to the table first, since the section's counts
 (``draw_rate.py``'s) are taken over the table's draws up to this one, so that they do not
 change as later draws are added. ``--performance`` prints the draw's five rows of
-docs/performance.md's table of two-hour runs (each member's stages 1 and 2, then stage 3),
-which the test also finds there.
+docs/performance.md's table of two-hour runs (each member's stages 1 and 2, then stage 3).
+
+How fast the box ran against the draw before, in the mean frames/s of stage 1's two
+members: "about as fast as" within 1%, "a little faster / slower than" within 3%,
+"faster / slower than" beyond; the previous draw's box is named where it was another.
 
 Usage:
     python benchmarks/draw_section.py docs/cards/PREFIX --draw 64 \\
         --previous docs/cards/PREVIOUS_PREFIX --row
     python benchmarks/draw_section.py docs/cards/PREFIX --draw 64 \\
-        --previous docs/cards/PREVIOUS_PREFIX
+        --previous docs/cards/PREVIOUS_PREFIX [--performance]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import re
 import statistics as st
 import sys
-from datetime import datetime
+from datetime import datetime, timedelta
+from functools import cached_property
 from pathlib import Path
 
 import board_diff
@@ -40,13 +46,15 @@ from paired_subset import _rows, mean_se
 from stage3_minutes import stamps, work
 from train_throughput import card_segment, stage_cuts
 
+from maipp_bench.curves import read_curve
+
 ROOT = Path(__file__).resolve().parent.parent
 SUITE, METHOD = "risk_aware", "ours_ti"
 # Every baseline the ranking target names (draw_figures.sh's board_diff.py call, less the
-# oracle, which is a bound and not a baseline), and the one each budget's table cell and
-# the paired comparison take.
+# oracle, which is a bound and not a baseline); the table's cells take B = 2 against
+# sga_rrt and B = 4-5 against catnipp_ti, B = 5 paired on the committed episodes.
 BASELINES = ("sga_rrt_0.3_0.4", "greedy", "catnipp_ti", "catnipp_greedy")
-PAIRED_AGAINST = "catnipp_ti"
+SGA, TI = "sga_rrt_0.3_0.4", "catnipp_ti"
 PAIRED_RESULTS = "docs/cards/catnipp_ti_risk_aware_b5_results"
 BUDGETS = (2.0, 3.0, 4.0, 5.0)
 RECIPE = 'WIDE=8 POP=2 SELECT=1 FINAL=1 FINAL_BUDGETS="2 4 5"'
@@ -56,7 +64,7 @@ _UNITS = ("", "first", "second", "third", "fourth", "fifth", "sixth", "seventh",
 _TEENS = ("tenth", "eleventh", "twelfth", "thirteenth", "fourteenth", "fifteenth",
           "sixteenth", "seventeenth", "eighteenth", "nineteenth")
 _TENS = ("", "", "twent", "thirt", "fort", "fift", "sixt", "sevent", "eight", "ninet")
-_CARDINAL = ("", "one", "two", "three", "four", "five", "six", "seven", "eight", "nine")
+_CARDINAL = ("no", "one", "two", "three", "four", "five", "six", "seven", "eight", "nine")
 
 
 def ordinal(n: int) -> str:
@@ -71,39 +79,52 @@ def ordinal(n: int) -> str:
     return f"{_TENS[tens]}ieth" if unit == 0 else f"{_TENS[tens]}y-{_UNITS[unit]}"
 
 
-def _signed(diff: float, se: float, digits: int) -> str:
+def _count(n: int, noun: str) -> str:
+    """"one update", "3 traps"."""
+    return f"{_CARDINAL[n] if n < len(_CARDINAL) else n} {noun}{'' if n == 1 else 's'}"
+
+
+def _pm(diff: float, se: float, digits: int) -> str:
     return f"{diff:+.{digits}f} ± {se:.{digits}f}"
 
 
-def _both(members: list[dict], key: str) -> str:
-    """The members' frames/s, "58.4 and 58.0"."""
-    return " and ".join(f"{m[key]:.1f}" for m in members)
-
-
-def _lead(diff: float) -> str:
+def _lead(diff: float, third_person: bool = True) -> str:
     """A difference of Tr(P_f) (lower is better) as the docs word it."""
-    return "leads" if diff < 0 else "trails"
+    word = "lead" if diff < 0 else "trail" if diff > 0 else "tie"
+    return word + ("s" if third_person else "")
+
+
+def _budgets(budgets: list[float]) -> str:
+    """"B = 5 alone", "B = 2 and 5"."""
+    if len(budgets) == 1:
+        return f"B = {budgets[0]:g} alone"
+    return "B = " + ", ".join(f"{b:g}" for b in budgets[:-1]) + f" and {budgets[-1]:g}"
+
+
+def machine_name(card_machine: str) -> str:
+    """The CPU as the docs name it, from a card's ``machine`` ("x86_64, Intel(R) Xeon(R)
+    Processor, 2 cores, ...": "Intel Xeon")."""
+    cpu = re.sub(r"\((R|TM)\)|\bProcessor\b|\bCPU\b|@.*", "", card_machine.split(", ")[1])
+    return " ".join(cpu.split())
 
 
 def pair(rows: dict[tuple, dict], ref: dict[tuple, dict], keys: list[tuple]) -> dict:
     """``rows`` against ``ref`` on the episodes ``keys``: the mean paired difference and
     its standard error, wins, mean Tr(P_f) and traps, the same split by whether ``rows``'
-    episode was trapped (count, mean, se), and the episode with the worst Tr(P_f)."""
+    episode was trapped (count, mean, se), the episode of the worst Tr(P_f) (``worst``)
+    and the one that costs the most against ``ref`` (``costliest``)."""
     d = {k: rows[k]["trace"] - ref[k]["trace"] for k in keys}
     diff, se = mean_se(list(d.values()))
     split = {}
     for tag, trapped in (("untrapped", False), ("trapped", True)):
         v = [x for k, x in d.items() if (rows[k]["traps"] > 0) == trapped]
         split[tag] = (len(v), *mean_se(v)) if v else (0, float("nan"), float("nan"))
-    worst = max(keys, key=lambda k: rows[k]["trace"])
     return {"n": len(keys), "diff": diff, "se": se, "wins": sum(v < 0 for v in d.values()),
             "trace": st.mean(rows[k]["trace"] for k in keys),
             "median": st.median(rows[k]["trace"] for k in keys),
-            "traps": st.mean(rows[k]["traps"] for k in keys), **split, "worst": worst}
-
-
-def _jsonl(path: Path) -> list[dict]:
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+            "traps": st.mean(rows[k]["traps"] for k in keys), **split,
+            "worst": max(keys, key=lambda k: rows[k]["trace"]),
+            "costliest": max(keys, key=d.get)}
 
 
 class Draw:
@@ -112,147 +133,153 @@ class Draw:
     def __init__(self, prefix: str, number: int) -> None:
         self.prefix, self.number = prefix, number
         self.path = ROOT / prefix
-        if not Path(f"{self.path}.json").exists():
+        if not self.file(".json").exists():
             raise SystemExit(f"draw_section.py: no card {prefix}.json (ship the draw first)")
         seed = re.search(r"_seed(\d+)_", Path(prefix).name)
         if seed is None:
             raise SystemExit(f"draw_section.py: {prefix}: no _seedN_ in the prefix")
         self.seed = int(seed[1])
-        self.card = self.json(".json")
+        self.card = self.read(".json")
         # the recipe's OVERRIDES, as stage 3's command (the card's) carries them
         self.precision = "bf16" if "algo.precision=bf16" in self.card["command"] else "float32"
-        # "x86_64, AMD EPYC, 2 cores, native bf16: yes, ..." (maipp_bench.hardware)
-        self.machine = self.card["machine"].split(", ")[1]
+        self.machine = machine_name(self.card["machine"])
         self.native = ("native bf16" if "native bf16: yes" in self.card["machine"]
-                       else "no native bf16")
-        self.wall = stamps(self.file("_wall.txt"))
+                       else "without native bf16")
+        wall = self.file("_wall.txt")
+        self.wall = stamps(wall)
         # the run folder, as the wall stamps name it ("stage1 done <time> outputs/h63")
-        self.out = next(line.split()[-1] for line in self.file("_wall.txt").read_text()
-                        .splitlines() if line.startswith("stage1 done")
-                        and not line.rstrip().endswith("/m1"))
+        self.out = next((line.split()[-1] for line in wall.read_text().splitlines()
+                         if line.startswith("stage1 done") and not line.endswith("/m1")), None)
+        if self.out is None or "end" not in self.wall:
+            raise SystemExit(f"draw_section.py: {wall} lacks a 'stage1 done' or 'end' stamp")
         # a kept start's card holds stages 1-2; stage 3's is then the set-aside average's
-        kept_start = self.file("_stage3_avg.json").exists()
-        self.stage3 = self.json("_stage3_avg.json") if kept_start else self.card
-        self.set_aside = "_stage3_avg.json" if kept_start else "_stage3_start.json"
+        self.kept_start = self.file("_stage3_avg.json").exists()
+        self.stage3 = self.read("_stage3_avg.json") if self.kept_start else self.card
+        self.set_aside = "_stage3_avg.json" if self.kept_start else "_stage3_start.json"
+        self.select = self.read("_start_choice.json")
+        self.final = self.read("_choice.json")
+        self.plan = self.read("_deadline.json")
+
+    def file(self, suffix: str) -> Path:
+        """The card file ``PREFIX + suffix``."""
+        return Path(f"{self.path}{suffix}")
+
+    def read(self, suffix: str) -> dict:
+        """The JSON card ``PREFIX + suffix``."""
+        return json.loads(self.file(suffix).read_text())
+
+    @property
+    def minutes(self) -> float:
+        """The run's wall clock, start to end stamp, in minutes to one decimal (half up,
+        as the docs round them)."""
+        seconds = (self.wall["end"] - self.wall["start"]).total_seconds()
+        return math.floor(seconds / 6 + 0.5) / 10
 
     def score_stamps(self) -> dict[str, datetime]:
         """score_draw.py's stamps: "score_start", then "B45" and "B23" for its passes."""
         found = {}
         for line in self.file("_score.txt").read_text().splitlines():
-            word, *_, time = line.split()
-            key = {"scored B=5,4": "B45", "scored B=2,3": "B23"}.get(" ".join(line.split()[:2]),
-                                                                     word)
-            found[key] = datetime.fromisoformat(time.replace("Z", "+00:00"))
+            words = line.split()
+            key = {"scored B=5,4": "B45", "scored B=2,3": "B23"}.get(" ".join(words[:2]),
+                                                                     words[0])
+            found[key] = datetime.fromisoformat(words[-1].replace("Z", "+00:00"))
         return found
 
-    def file(self, suffix: str) -> Path:
-        return Path(f"{self.path}{suffix}")
-
-    def json(self, suffix: str) -> dict:
-        return json.loads(self.file(suffix).read_text())
-
-    def minutes(self) -> float:
-        return (self.wall["end"] - self.wall["start"]).total_seconds() / 60
-
+    @cached_property
     def members(self) -> list[dict]:
-        """Per member of stages 1-2 (seed, then seed + 1000): the last update of stage 1
-        and 2 and each stage's frames/s."""
+        """Per member of stages 1-2 (seed, then seed + 1000): its seed, stage 1's and 2's
+        ``card_segment`` and the last update of each."""
         out = []
-        for suffix, seed in (("_stages12.jsonl", self.seed), ("_m1_stages12.jsonl",
-                                                               self.seed + 1000)):
-            curve = _jsonl(self.file(suffix))
+        for suffix, seed in (("_stages12.jsonl", self.seed),
+                             ("_m1_stages12.jsonl", self.seed + 1000)):
+            curve = read_curve(self.file(suffix))  # as train_throughput.py --card reads it
             cut = stage_cuts(curve)[0]
             out.append({"seed": seed, "stage1": cut, "stage2": len(curve),
-                        "fps1": card_segment(curve, 0, cut)["frames_per_s"],
-                        "fps2": card_segment(curve, cut, len(curve))["frames_per_s"]})
+                        "seg1": card_segment(curve, 0, cut),
+                        "seg2": card_segment(curve, cut, len(curve))})
         return out
 
-    def stage3_fps(self) -> float:
+    @cached_property
+    def stage3_segment(self) -> dict:
+        """Stage 3's throughput over its card's updates."""
         curve = self.stage3["curve"]
-        return card_segment(curve, 0, len(curve))["frames_per_s"]
+        return card_segment(curve, 0, len(curve))
 
+    @cached_property
     def board(self) -> dict:
         """The committed risk_aware board with this draw's ``ours_ti`` rows in place of
-        the shipped network's (as ``board_diff.py --method-from`` reads it)."""
-        board = boards.load(SUITE, ROOT / "leaderboards")
-        mine = [r for r in boards.load(SUITE, f"{self.path}_board")["rows"]
-                if r["method"] == METHOD]
-        board["rows"] = [r for r in board["rows"] if r["method"] != METHOD] + mine
-        return board
+        the shipped network's (``board_diff.py --method-from``)."""
+        return board_diff.with_rows_from(boards.load(SUITE, ROOT / "leaderboards"), METHOD,
+                                         f"{self.path}_board")
+
+    @cached_property
+    def scores(self) -> dict[float, float]:
+        """The draw's mean Tr(P_f) per budget under the protocol."""
+        rows = boards.keyed(self.board, [METHOD])
+        return {b: rows[METHOD, f"budget={b}"]["trace_mean"] for b in BUDGETS}
+
+    @cached_property
+    def differences(self) -> dict[float, dict[str, tuple[float, float]]]:
+        """Per budget, each baseline's unpaired (difference, standard error)."""
+        return {float(e["setting"].removeprefix("budget=")): e["diff"]
+                for e in board_diff.differences(self.board, METHOD, list(BASELINES))}
 
     def paired(self, exclude: tuple[tuple[int, int], ...] = ()) -> dict:
-        """B = 5 against ``catnipp_ti``, episode by episode (``paired_subset.py``), with
-        ``worst``: the worst episode's (instance, trial), its Tr(P_f) and traps, and
+        """B = 5 against ``catnipp_ti``, episode by episode (``paired_subset.py``); its
+        ``costliest`` episode as (instance, trial) with its Tr(P_f), traps and
         ``catnipp_ti``'s Tr(P_f) there."""
         mine = _rows(self.file("_b5_results") / SUITE / f"{METHOD}.jsonl")
-        ref = _rows(ROOT / PAIRED_RESULTS / SUITE / f"{PAIRED_AGAINST}.jsonl")
+        ref = _rows(ROOT / PAIRED_RESULTS / SUITE / f"{TI}.jsonl")
         keys = [k for k in mine if k[0] == "budget=5.0" and k[1:] not in exclude]
         found = pair(mine, ref, keys)
-        k = found["worst"]
-        found["worst"] = {"episode": k[1:], "trace": mine[k]["trace"],
-                          "traps": mine[k]["traps"], "against": ref[k]["trace"]}
+        k = found["costliest"]
+        found["costliest"] = {"episode": k[1:], "trace": mine[k]["trace"],
+                              "traps": mine[k]["traps"], "against": ref[k]["trace"]}
         return found
 
-
-def scores(draw: Draw) -> dict[float, float]:
-    rows = boards.keyed(boards.load(SUITE, f"{draw.path}_board"), [METHOD])
-    return {b: rows[METHOD, f"budget={b}"]["trace_mean"] for b in BUDGETS}
-
-
-def margins(draw: Draw) -> dict[float, tuple[str, float, float]]:
-    """Per budget, the closest baseline and the unpaired difference to it."""
-    found = {}
-    for entry in board_diff.differences(draw.board(), METHOD, list(BASELINES)):
-        name, (diff, se) = max(entry["diff"].items(), key=lambda kv: kv[1][0])
-        found[float(entry["setting"].removeprefix("budget="))] = (name, diff, se)
-    return dict(sorted(found.items()))
-
-
-def table_margin(draw: Draw, budget: float, against: str) -> tuple[float, float]:
-    entry = next(e for e in board_diff.differences(draw.board(), METHOD, [against])
-                 if e["setting"] == f"budget={budget}")
-    return entry["diff"][against]
+    @cached_property
+    def b5(self) -> dict:
+        """:meth:`paired` over all 300 episodes."""
+        return self.paired()
 
 
 def verdict(draw: Draw) -> tuple[str, list[float]]:
-    """"by a margin" (ahead of every baseline at every budget, the table's three deciding
-    margins each by two standard errors), "in the means", or "missed"; and the budgets at
-    which a baseline is ahead in the mean."""
-    diffs = board_diff.differences(draw.board(), METHOD, list(BASELINES))
-    behind = [float(e["setting"].removeprefix("budget=")) for e in diffs
-              if any(d >= 0 for d, _ in e["diff"].values())]
+    """"by a margin" (ahead of every baseline at every budget in the means, and the
+    table's three deciding margins each by two standard errors), "in the means" or
+    "missed"; and the budgets at which a baseline is ahead in the mean."""
+    behind = [b for b, diffs in draw.differences.items()
+              if any(d >= 0 for d, _ in diffs.values())]
     if behind:
         return "missed", behind
-    p = draw.paired()
-    deciding = [table_margin(draw, 2.0, "sga_rrt_0.3_0.4"), table_margin(draw, 4.0, "catnipp_ti"),
-                (p["diff"], p["se"])]
+    deciding = [draw.differences[2.0][SGA], draw.differences[4.0][TI],
+                (draw.b5["diff"], draw.b5["se"])]
     return ("by a margin" if all(d + 2 * se < 0 for d, se in deciding) else "in the means"), []
 
 
 def sga_version() -> int:
+    """The version of ``sga_rrt``'s algorithm in the registry (its rows on the committed
+    board are of it: eval never reuses rows of another fingerprint)."""
     from maipp_bench.algos.registry import POLICIES, get_method
 
-    return getattr(POLICIES[get_method("sga_rrt_0.3_0.4").policy], "version", 1)
+    return getattr(POLICIES[get_method(SGA).policy], "version", 1)
 
 
-def pace(now: list[dict], before: list[dict], key: str) -> str:
-    """How the members' frames/s compare with the previous draw's: "faster", "slower"
-    or "about as fast as" (within 2% in the mean)."""
-    ratio = st.mean(m[key] for m in now) / st.mean(m[key] for m in before)
-    return "faster than" if ratio > 1.02 else "slower than" if ratio < 0.98 else \
-        "about as fast as"
+def pace(draw: Draw, previous: Draw) -> str:
+    """How stage 1 ran against the previous draw's (the module docstring's rule)."""
+    ratio = (st.mean(m["seg1"]["frames_per_s"] for m in draw.members)
+             / st.mean(m["seg1"]["frames_per_s"] for m in previous.members))
+    word = "faster" if ratio > 1 else "slower"
+    speed = ("about as fast as" if abs(ratio - 1) < 0.01 else
+             f"a little {word} than" if abs(ratio - 1) < 0.03 else f"{word} than")
+    box = "" if previous.machine == draw.machine else f" {previous.machine}"
+    return f"{speed} the {ordinal(previous.number)}'s{box}"
 
 
-def final_choice(draw: Draw) -> dict:
-    """FINAL=1's choice: which candidate was kept and its margins."""
-    choice = draw.json("_choice.json")
-    start, avg = choice["candidates"]  # final_choice.sh passes start.pt, then avg.pt
-    kept_start = choice["chosen"]["position"] == start["position"]
-    budgets = choice["budget"] if isinstance(choice["budget"], list) else [choice["budget"]]
-    select = draw.json("_start_choice.json")
-    return {"choice": choice, "start": start, "avg": avg, "kept_start": kept_start,
-            "budgets": budgets,
-            "ratio": choice["seconds"] / (select["seconds"] * work(choice) / work(select))}
+def final_estimate_ratio(draw: Draw) -> float:
+    """The final choice's seconds over their estimate from the start choice's
+    (``stage3_minutes.py --calibrate``)."""
+    return draw.final["seconds"] / (draw.select["seconds"] * work(draw.final)
+                                    / work(draw.select))
 
 
 def _member(path: str, draw: Draw) -> str:
@@ -261,154 +288,166 @@ def _member(path: str, draw: Draw) -> str:
 
 
 def start_choice_text(draw: Draw) -> str:
-    select = draw.json("_start_choice.json")
-    cands, chosen = select["candidates"], select["chosen"]
+    """The start choice: what it kept, by how much, and against the last candidate."""
+    cands, chosen = draw.select["candidates"], draw.select["chosen"]
     who = _member(chosen["path"], draw)
     ends = {_member(c["path"], draw): c for c in cands if c["path"].endswith("checkpoint.pt")}
     gap = ends[who]["update"] - chosen["update"]
-    count = _CARDINAL[gap] if gap < len(_CARDINAL) else str(gap)
-    where = ("its end" if gap == 0 else
-             f"a snapshot {count} update{'s' if gap > 1 else ''} before its end")
+    where = "its end" if gap == 0 else f"a snapshot {_count(gap, 'update')} before its end"
     others = [c for c in cands if c["position"] != chosen["position"]]
-    runner = min(c["mean"] for c in others)
     parts = []
-    for member in dict.fromkeys(_member(c["path"], draw) for c in cands):
+    for member in dict.fromkeys([who, *(_member(c["path"], draw) for c in cands)]):
         own = [c for c in others if _member(c["path"], draw) == member]
-        best = min(own, key=lambda c: c["mean"])
-        text = (f"{member}'s end, update {best['update']}, {best['mean']:.2f}"
-                if best is ends[member] else
+        if not own:
+            continue
+        best, end = min(own, key=lambda c: c["mean"]), ends[member]
+        text = (f"{member}'s end, update {end['update']}, {end['mean']:.2f}" if best is end else
                 f"{member}'s update {best['update']}, {best['mean']:.2f}")
-        if best is not ends[member] and ends[member] in own:
-            text += f", and its end, update {ends[member]['update']}, {ends[member]['mean']:.2f}"
+        if best is not end and end in own:
+            text += f", and its end, update {end['update']}, {end['mean']:.2f}"
         parts.append(text)
-    held = " and ".join(f"B = {b:g} {chosen[f'mean_B{b:g}']:.2f}" for b in select["budget"])
-    last = cands[-1]
-    text = (f"The start choice ({select['seconds']:.0f} s) kept **{who}'s update "
-            f"{chosen['update']}**, {where}, by {runner - chosen['mean']:.2f} (score "
+    budgets = draw.select["budget"]
+    held = " and ".join(f"B = {b:g} {chosen[f'mean_B{b:g}']:.2f}" for b in budgets)
+    runner_up = min(c["mean"] for c in others)
+    text = (f"The start choice ({draw.select['seconds']:.0f} s) kept **{who}'s update "
+            f"{chosen['update']}**, {where}, by {runner_up - chosen['mean']:.2f} (score "
             f"{chosen['mean']:.2f}: held-out {held}; the best of the others: "
             f"{'; '.join(parts)}; `..._start_choice.json`, `select_snapshot.py --show`)")
+    last = cands[-1]
     if chosen["position"] != last["position"]:
-        zs = [(b, chosen[f"minus_end_B{b:g}"] / chosen[f"se_B{b:g}"]) for b in select["budget"]]
+        zs = [(b, chosen[f"minus_end_B{b:g}"] / chosen[f"se_B{b:g}"]) for b in budgets]
+        words = [f"{'led' if z < 0 else 'trailed'} by {abs(z):.1f}" for _, z in zs]
+        # "led by 1.4 standard errors at B = 2 and by 0.5 at B = 5"
+        same = len({w.split()[0] for w in words}) == 1
         text += (f"; against the last candidate, {_member(last['path'], draw)}'s end, the "
                  "chosen snapshot " + " and ".join(
-                     f"{'led' if z < 0 else 'trailed'} by {abs(z):.1f} standard errors at "
-                     f"B = {b:g}" for b, z in zs))
+                     (w.split(" ", 1)[1] if same and i else w)
+                     + (" standard errors" if i == 0 else "") + f" at B = {b:g}"
+                     for i, (w, (b, _)) in enumerate(zip(words, zs))))
     return text + "."
 
 
 def stage3_text(draw: Draw, previous: Draw) -> str:
-    plan = draw.json("_deadline.json")
-    if plan["minutes"] < plan["typed"]:
-        given = f"`DEADLINE` **trimmed stage 3 to {plan['minutes']:g} minutes**"
-    else:
-        given = f"`DEADLINE` left stage 3 its {plan['typed']:g} minutes"
-    s3 = draw.stage3
-    f = final_choice(draw)
-    updates = s3["averaged_updates"]
-    kept, other = (("stage 3's start", "average") if f["kept_start"] else
-                   ("the average", "start"))
-    chosen, rest = (f["start"], f["avg"]) if f["kept_start"] else (f["avg"], f["start"])
+    """DEADLINE's minutes, stage 3's updates and pace, and the final choice."""
+    plan = draw.plan
+    given = (f"`DEADLINE` **trimmed stage 3 to {plan['minutes']:g} minutes**"
+             if plan["minutes"] < plan["typed"] else
+             f"`DEADLINE` left stage 3 its {plan['typed']:g} minutes")
+    start, avg = draw.final["candidates"]  # final_choice.sh passes start.pt, then avg.pt
+    chosen, other = (start, avg) if draw.kept_start else (avg, start)
+    kept, other_name = ("stage 3's start", "average") if draw.kept_start else \
+        ("the average", "start")
+    updates = draw.stage3["averaged_updates"]
+    span = f"updates {updates[0]}-{updates[-1]}"
+    over = (f"over the average of its snapshots ({span})" if draw.kept_start else
+            f"of stage 3's snapshots ({span}) over its start")
+    budgets = draw.final["budget"]
     diffs = ", ".join(
-        f"at B = {b:g} {_signed(f['start'][f'minus_end_B{b:g}'], f['start'][f'se_B{b:g}'], 2)}"
-        f" ({abs(f['start'][f'minus_end_B{b:g}']) / f['start'][f'se_B{b:g}']:.1f} standard "
-        "errors)" for b in f["budgets"])
-    over = (f"over the average of its snapshots (updates {updates[0]}-{updates[-1]})"
-            if f["kept_start"] else
-            f"of stage 3's snapshots (updates {updates[0]}-{updates[-1]}) over its start")
-    return (f"At stage 3's start {plan['elapsed']:g} minutes had passed; with the final "
+        f"at B = {b:g} {_pm(start[f'minus_end_B{b:g}'], start[f'se_B{b:g}'], 2)} "
+        f"({abs(start[f'minus_end_B{b:g}']) / start[f'se_B{b:g}']:.1f} standard errors)"
+        for b in budgets)
+    s3 = draw.stage3
+    return (f"At stage 3's start {plan['elapsed']:.1f} minutes had passed; with the final "
             f"choice's reserve of {plan['final_estimate']:g} minutes, {given} "
             f"(`..._deadline.json`). Stage 3 made {s3['run_continued_to']} updates "
-            f"(snapshots to {s3['updates']}; {draw.stage3_fps():.1f} frames/s over updates "
-            f"1-{s3['updates']}, against the {ordinal(previous.number)}'s "
-            f"{previous.stage3_fps():.1f}; `python benchmarks/train_throughput.py --card "
-            f"{draw.prefix}{'_stage3_avg' if f['kept_start'] else ''}.json`) and the final "
-            f"choice ({f['choice']['seconds']:.0f} s, {f['ratio']:.2f}x its estimate; "
-            f"`stage3_minutes.py --calibrate`) kept **{kept}** {over}, by "
-            f"{rest['mean'] - chosen['mean']:.2f} (held-out score {chosen['mean']:.2f} against "
-            f"the {other}'s {rest['mean']:.2f}; start minus average {diffs}; "
-            f"`..._choice.json`, `select_snapshot.py --show`; the set-aside {other}'s card is "
-            f"`...{draw.set_aside}`).")
+            f"(snapshots to {s3['updates']}; {draw.stage3_segment['frames_per_s']:.1f} "
+            f"frames/s over updates 1-{s3['updates']}, against the "
+            f"{ordinal(previous.number)}'s {previous.stage3_segment['frames_per_s']:.1f}; "
+            f"`python benchmarks/train_throughput.py --card "
+            f"{draw.prefix}{'_stage3_avg' if draw.kept_start else ''}.json`) and the final "
+            f"choice ({draw.final['seconds']:.0f} s, {final_estimate_ratio(draw):.2f}x its "
+            f"estimate; `stage3_minutes.py --calibrate`) kept **{kept}** {over}, by "
+            f"{other['mean'] - chosen['mean']:.2f} (held-out score {chosen['mean']:.2f} "
+            f"against the {other_name}'s {other['mean']:.2f}; start minus average {diffs}; "
+            f"`..._choice.json`, `select_snapshot.py --show`; the set-aside {other_name}'s "
+            f"card is `...{draw.set_aside}`).")
 
 
 def protocol_text(draw: Draw) -> str:
-    s = scores(draw)
-    shipped = {b: r["trace_mean"] for (m, k), r in
-               boards.keyed(boards.load(SUITE, ROOT / "leaderboards"), [METHOD]).items()
-               if m == METHOD for b in BUDGETS if k == f"budget={b}"}
-    ahead = [b for b in BUDGETS if round(s[b], 1) < round(shipped[b], 1)]
-    versus = ("lower at every budget" if len(ahead) == len(BUDGETS) else
-              "lower at none" if not ahead else
-              "lower at B = " + ", ".join(f"{b:g}" for b in ahead) + " alone")
+    """The protocol's scores, against the shipped network and the closest baselines."""
+    s = draw.scores
+    board = boards.keyed(boards.load(SUITE, ROOT / "leaderboards"), [METHOD])
+    shipped = {b: board[METHOD, f"budget={b}"]["trace_mean"] for b in BUDGETS}
+    ahead = [b for b in BUDGETS if s[b] < shipped[b]]
+    versus = ("ahead of" if ahead else "behind") + " the shipped `ours.pt`'s " + " / ".join(
+        f"{shipped[b]:.1f}" for b in BUDGETS) + " in the mean " + (
+        "at every budget" if len(ahead) in (0, len(BUDGETS)) else "at " + _budgets(ahead))
     at = draw.score_stamps()
-    m = margins(draw)
-    cells = "; ".join(f"B = {b:g} `{name}` {_signed(d, se, 1)}" for b, (name, d, se) in m.items()
-                      if b != 5.0)
+    closest = {b: max(d.items(), key=lambda kv: kv[1][0]) for b, d in
+               sorted(draw.differences.items()) if b != 5.0}
+    cells = "; ".join(f"B = {b:g} `{name}` {_pm(d, se, 1)}"
+                      for b, (name, (d, se)) in closest.items())
     return (f"Under the protocol it scores **{' / '.join(f'{s[b]:.1f}' for b in BUDGETS)}** "
             f"(`python benchmarks/board_table.py --suite risk_aware --leaderboards "
             f"{draw.prefix}_board`; evaluation {at['score_start']:%H:%M:%S}-"
             f"{at['B45']:%H:%M:%S} UTC for B = 4-5 and to {at['B23']:%H:%M:%S} for B = 2-3, "
-            f"`..._score.txt`), beside the shipped `ours.pt`'s "
-            f"{' / '.join(f'{shipped[b]:.1f}' for b in BUDGETS)} ({versus}). "
-            f"Its margin to the closest baseline at each budget (this minus it, unpaired; "
-            f"`board_diff.py --method ours_ti --method-from {draw.prefix}_board --against` "
-            f"every baseline): {cells}.")
+            f"`..._score.txt`), {versus}. Its margin to the closest baseline at each budget "
+            f"(this minus it, unpaired; `board_diff.py --method ours_ti --method-from "
+            f"{draw.prefix}_board --against` every baseline): {cells}.")
 
 
 def paired_text(draw: Draw) -> str:
-    p = draw.paired()
-    worst = p["worst"]
+    """B = 5 against catnipp_ti, paired: trapped and untrapped episodes, and without the
+    episode that costs the most."""
+    p = draw.b5
+    worst = p["costliest"]
     without = draw.paired((worst["episode"],))
     decides = (p["diff"] < 0) != (without["diff"] < 0)
-    untrapped, trapped = p["untrapped"], p["trapped"]
+    groups = " and ".join(
+        f"its {n} {tag} {'episodes' if tag == 'untrapped' else 'ones'} "
+        f"{_lead(m, third_person=False)} by {abs(m):.2f} ± {e:.2f}"
+        for tag in ("untrapped", "trapped") for n, m, e in [p[tag]] if n)
     return (f"At **B = 5 it {_lead(p['diff'])} `catnipp_ti` by {abs(p['diff']):.2f} ± "
             f"{p['se']:.2f} paired** (z {p['diff'] / p['se']:+.1f}, {p['wins']} wins of "
-            f"{p['n']}; traps {p['traps']:.2f} per episode). Its {untrapped[0]} untrapped "
-            f"episodes {_lead(untrapped[1])[:-1]} by {abs(untrapped[1]):.2f} ± "
-            f"{untrapped[2]:.2f} and its {trapped[0]} trapped ones "
-            f"{_lead(trapped[1])[:-1]} by {abs(trapped[1]):.2f} ± {trapped[2]:.2f}; its worst "
-            f"episode, {worst['trace']:.1f} "
-            f"({worst['traps']} traps; instance {worst['episode'][0]}, trial "
+            f"{p['n']}; traps {p['traps']:.2f} per episode). {groups[0].upper()}{groups[1:]}; "
+            f"its costliest episode against `catnipp_ti`, {worst['trace']:.1f} "
+            f"({_count(worst['traps'], 'trap')}; instance {worst['episode'][0]}, trial "
             f"{worst['episode'][1]}, where `catnipp_ti` scored {worst['against']:.1f}), left "
             f"out, it {_lead(without['diff'])} by {abs(without['diff']):.2f} ± "
             f"{without['se']:.2f} (z {without['diff'] / without['se']:+.1f}; the second "
-            f"command below): that one episode "
-            f"{'decides' if decides else 'does not decide'} the ranking at B = 5.")
+            f"command below): that one episode {'decides' if decides else 'does not decide'} "
+            "the ranking at B = 5.")
 
 
-def counts_text(draw: Draw, minutes: float, level: float = 0.95) -> str:
+def counts_text(draw: Draw, level: float = 0.95) -> str:
+    """The verdict, and draw_rate.py's counts over the table's draws up to this one."""
     table = outcomes()
     if draw.number not in table:
         raise SystemExit(f"draw_section.py: draw {draw.number} has no row in docs/results.md's "
                          "table of draws; add the row (--row) first")
     draws = {d: o for d, o in table.items() if d <= draw.number}
     mine = family(draws[draw.number]["recipe"])
-    same = [d for d, o in draws.items() if family(o["recipe"]) == mine]
 
-    def rate(ds: list[int]) -> tuple[int, str]:
+    def rate(ds: list[int]) -> str:
         k = sum(met(draws[d]) for d in ds)
         lo, hi = clopper_pearson(k, len(ds), level)
-        return k, f"{k} of {len(ds)} ({lo:.0%} to {hi:.0%})"
+        return f"{k} of {len(ds)} ({lo:.0%} to {hi:.0%})"
 
     timely = sum(met(o) and "over 2 h" not in o["met"] for o in draws.values())
     name, behind = verdict(draw)
-    words = (f"**misses** the ranking at B = {', '.join(f'{b:g}' for b in behind)}"
-             if name == "missed" else f"**meets** the ranking **{name}**")
-    return (f"So it {words}, {'within' if minutes <= 120 else 'over'} the compute goal "
-            f"({minutes:.1f} minutes). Counts over the table's draws 1-{draw.number} "
+    words = (f"**misses** the ranking **at {_budgets(behind)}**" if name == "missed" else
+             f"**meets** the ranking **{name}**")
+    return (f"So it {words}, {'within' if draw.minutes <= 120 else 'over'} the compute goal "
+            f"({draw.minutes:.1f} minutes). Counts over the table's draws 1-{draw.number} "
             f"(`python benchmarks/draw_rate.py`; exact {level:.0%} intervals): `{mine}` "
-            f"{rate(same)[1]}; all draws {rate(sorted(draws))[1]}, {timely} within two hours.")
+            f"{rate([d for d, o in draws.items() if family(o['recipe']) == mine])}; all "
+            f"draws {rate(sorted(draws))}, {timely} within two hours.")
+
+
+def _both(draw: Draw, key: str, field: str = "frames_per_s") -> str:
+    """The two members' figures, "58.4 and 58.0" (or their updates, "105 and 104")."""
+    return " and ".join(f"{m[key]}" if field == "" else f"{m[key][field]:.1f}"
+                        for m in draw.members)
 
 
 def section(draw: Draw, previous: Draw, recipe: str) -> str:
-    now, before = draw.members(), previous.members()
-    minutes = draw.minutes()
+    """The draw's section of docs/results.md."""
     start, end = draw.wall["start"], draw.wall["end"]
-    seeds = " and ".join(str(m["seed"]) for m in now)
     overrides = "OVERRIDES=algo.precision=bf16 " if draw.precision == "bf16" else ""
     cmd = (f"{draw.prefix}_b5_results --results {PAIRED_RESULTS} --method {METHOD} "
-           f"--against {PAIRED_AGAINST}")
-    worst = draw.paired()["worst"]["episode"]
-    args = f"{draw.prefix} --draw {draw.number} --previous {previous.prefix}"
+           f"--against {TI}")
+    worst = draw.b5["costliest"]["episode"]
+    seeds = " and ".join(str(m["seed"]) for m in draw.members)
     return "\n".join([
         f"**A {ordinal(draw.number)} run: seed {draw.seed}, `{recipe}` with "
         f"{draw.precision}, under `DEADLINE`** ({start:%Y-%m-%d}).",
@@ -418,29 +457,25 @@ def section(draw: Draw, previous: Draw, recipe: str) -> str:
         "last command):",
         "",
         "```bash",
-        f"{recipe} {overrides}bash benchmarks/train_2h.sh {draw.out} "
-        f"{draw.seed}",
+        f"{recipe} {overrides}bash benchmarks/train_2h.sh {draw.out} {draw.seed}",
         f"python benchmarks/score_draw.py {draw.out} --wait  # beside it: B = 5 and 4, then 2 "
         "and 3",
         f"python benchmarks/ship_draw.py {draw.out} {draw.prefix} --board {draw.out}_boards "
         f"--results {draw.out}_results",
         f"bash benchmarks/draw_figures.sh {draw.prefix} {previous.prefix}  # every figure below",
-        f"python benchmarks/draw_section.py {args}",
+        f"python benchmarks/draw_section.py {draw.prefix} --draw {draw.number} --previous "
+        f"{previous.prefix}",
         "```",
         "",
-        f"{start:%Y-%m-%d %H:%M:%S} to {end:%H:%M:%S} UTC: **{minutes:.1f} minutes** "
-        f"(`{draw.prefix}_wall.txt`). The members (seeds {seeds}) made **"
-        f"{' and '.join(str(m['stage1']) for m in now)}** updates in stage 1 ("
-        f"{_both(now, 'fps1')} frames/s, "
-        f"{pace(now, before, 'fps1')} the {ordinal(previous.number)}'s "
-        f"{_both(before, 'fps1')}) and "
-        f"{' and '.join(str(m['stage2']) for m in now)} by the end of stage 2 ("
-        f"{_both(now, 'fps2')} frames/s there, against "
-        f"{_both(before, 'fps2')}; `python "
-        f"benchmarks/train_throughput.py --card {draw.prefix}_stages12.jsonl --split stages`, "
-        f"and the same for `..._m1_stages12.jsonl`). {start_choice_text(draw)} "
-        f"{stage3_text(draw, previous)}",
-        f"{protocol_text(draw)} {paired_text(draw)} {counts_text(draw, minutes)}",
+        f"{start:%Y-%m-%d %H:%M:%S} to {end:%H:%M:%S} UTC: **{draw.minutes:.1f} minutes** "
+        f"(`{draw.prefix}_wall.txt`). The members (seeds {seeds}) made "
+        f"**{_both(draw, 'stage1', '')}** updates in stage 1 ({_both(draw, 'seg1')} frames/s, "
+        f"{pace(draw, previous)} {_both(previous, 'seg1')}) and {_both(draw, 'stage2', '')} "
+        f"by the end of stage 2 ({_both(draw, 'seg2')} frames/s there, against "
+        f"{_both(previous, 'seg2')}; `python benchmarks/train_throughput.py --card "
+        f"{draw.prefix}_stages12.jsonl --split stages`, and the same for "
+        f"`..._m1_stages12.jsonl`). {start_choice_text(draw)} {stage3_text(draw, previous)}",
+        f"{protocol_text(draw)} {paired_text(draw)} {counts_text(draw)}",
         "",
         "```bash",
         f"python benchmarks/paired_subset.py --subset {cmd}",
@@ -456,90 +491,84 @@ def _updates(seg: dict) -> int:
 
 
 def _perf_row(label: str, seg: dict) -> str:
-    return (f"| {label} | {_updates(seg)} | "
-            f"{seg['frames']:,} | {seg['decisions']:,} | {seg['wall_s']:,.0f} s | "
-            f"{seg['frames_per_s']:.1f} | {seg['decisions_per_s']:.1f} |")
+    return (f"| {label} | {_updates(seg)} | {seg['frames']:,} | {seg['decisions']:,} | "
+            f"{seg['wall_s']:,.0f} s | {seg['frames_per_s']:.1f} | "
+            f"{seg['decisions_per_s']:.1f} |")
 
 
 def performance(draw: Draw, previous: Draw, recipe: str) -> str:
     """The draw's rows of docs/performance.md: ``train_throughput.py --card``'s segments."""
-    plan = draw.json("_deadline.json")
-    start, end = draw.wall["start"], draw.wall["end"]
+    start, end = (t + timedelta(seconds=30) for t in (draw.wall["start"], draw.wall["end"]))
     steps = int(re.search(r"steps_per_batch=(\d+)", draw.card["command"])[1])
-    seconds = [d.json(f)["seconds"] for d in (draw, previous)
-               for f in ("_start_choice.json", "_choice.json")]
-    chosen = draw.json("_start_choice.json")["chosen"]
+    took = [d.select["seconds"] for d in (draw, previous)] + \
+        [d.final["seconds"] for d in (draw, previous)]
+    chosen = draw.select["chosen"]
     rows = []
-    for i, (suffix, member) in enumerate((("_stages12.jsonl", draw.seed),
-                                           ("_m1_stages12.jsonl", draw.seed + 1000))):
-        curve = _jsonl(draw.file(suffix))
-        cut = stage_cuts(curve)[0]
-        one, two = card_segment(curve, 0, cut), card_segment(curve, cut, len(curve))
-        envs = [seg["frames"] // _updates(seg) // steps for seg in (one, two)]
-        first = (f"the same script and fields with `{recipe}`, {draw.precision}, seed "
-                 f"{draw.seed} ({start:%Y-%m-%d, %H:%M}-{end:%H:%M} UTC, a 2-core {draw.machine} "
-                 f"box with {draw.native}; the cards name commit {draw.card['commit'][:7]}; "
-                 f"`DEADLINE={plan['deadline']:g}` gave stage 3 {plan['minutes']:g} minutes; "
-                 f"its held-out choices took {seconds[0]:.0f} s and {seconds[1]:.0f} s against "
-                 f"the {ordinal(previous.number)}'s {seconds[2]:.0f} s and {seconds[3]:.0f} s; "
-                 f"docs/results.md \"A {ordinal(draw.number)} run\"), member seed {member}"
-                 if i == 0 else f"the same, member seed {member} (beside it)")
+    for i, m in enumerate(draw.members):
+        envs = [m[s]["frames"] // _updates(m[s]) // steps for s in ("seg1", "seg2")]
+        label = (f"the same script and fields with `{recipe}`, {draw.precision}, seed "
+                 f"{draw.seed} ({start:%Y-%m-%d, %H:%M}-{end:%H:%M} UTC, a 2-core "
+                 f"{draw.machine} box with {draw.native}; the cards name commit "
+                 f"{draw.card['commit'][:7]}; `DEADLINE={draw.plan['deadline']:g}` gave "
+                 f"stage 3 {draw.plan['minutes']:g} minutes; its held-out choices took "
+                 f"{took[0]:.0f} s and {took[2]:.0f} s against the "
+                 f"{ordinal(previous.number)}'s {took[1]:.0f} s and {took[3]:.0f} s; "
+                 f"docs/results.md \"A {ordinal(draw.number)} run\"), member seed {m['seed']}"
+                 if i == 0 else f"the same, member seed {m['seed']} (beside it)")
         started = (f" (stage 3 started from update {chosen['update']})"
-                   if _member(chosen["path"], draw) == f"seed {member}" else "")
-        rows += [_perf_row(f"{first}, stage 1 ({envs[0]} envs x {steps} steps), updates "
-                           f"{one['updates']}", one),
-                 _perf_row(f"the same, member seed {member}, stage 2 ({envs[1]} envs x "
-                           f"{steps} steps), updates {two['updates']}{started}", two)]
-    curve = draw.stage3["curve"]
-    kept = "start" if final_choice(draw)["kept_start"] else "average"
-    other = "average" if kept == "start" else "start"
+                   if _member(chosen["path"], draw) == f"seed {m['seed']}" else "")
+        rows += [_perf_row(f"{label}, stage 1 ({envs[0]} envs x {steps} steps), updates "
+                           f"{m['seg1']['updates']}", m["seg1"]),
+                 _perf_row(f"the same, member seed {m['seed']}, stage 2 ({envs[1]} envs x "
+                           f"{steps} steps), updates {m['seg2']['updates']}{started}",
+                           m["seg2"])]
+    kept, other = ("start", "average") if draw.kept_start else ("average", "start")
     rows.append(_perf_row(
-        f"the same, stage 3 ({plan['minutes']:g} minutes, both threads), updates "
-        f"1-{len(curve)} ({draw.stage3['run_continued_to']} made; the final choice kept the "
-        f"{kept}; the set-aside {other}'s card, `...{draw.set_aside}`)",
-        card_segment(curve, 0, len(curve))))
+        f"the same, stage 3 ({draw.plan['minutes']:g} minutes, both threads), updates "
+        f"{draw.stage3_segment['updates']} ({draw.stage3['run_continued_to']} made; the final "
+        f"choice kept the {kept}; the set-aside {other}'s card, `...{draw.set_aside}`)",
+        draw.stage3_segment))
     return "\n".join(rows)
 
 
 def row(draw: Draw, previous: Draw, recipe: str) -> str:
-    plan = draw.json("_deadline.json")
+    """The draw's row of docs/results.md's "All two-hour runs, one table"."""
+    plan = draw.plan
     trimmed = (f"stage 3 trimmed to {plan['minutes']:.1f} min" if plan["minutes"] < plan["typed"]
                else "stage 3 not trimmed")
-    held = draw.json("_start_choice.json")["heldout_set"]
-    kept = "start" if final_choice(draw)["kept_start"] else "average"
-    speed = pace(draw.members(), previous.members(), "fps1")
-    s = scores(draw)
-    b2, b4, p = (table_margin(draw, 2.0, "sga_rrt_0.3_0.4"), table_margin(draw, 4.0, "catnipp_ti"),
-                 draw.paired())
+    held = draw.select["heldout_set"]
+    kept = "start" if draw.kept_start else "average"
     name, _ = verdict(draw)
     cells = [str(draw.number),
              f"`{recipe}`, {draw.precision}, held-out set {held}, cut defaults, under "
-             f"`DEADLINE={plan['deadline']:g}` ({trimmed}), {draw.minutes():.1f} min, "
-             f"{draw.machine}, {speed} the {ordinal(previous.number)}'s in stage 1 ({kept} kept)"
-             + ("" if draw.minutes() <= 120 else ", over 2 h"),
-             str(draw.seed), *(f"{s[b]:.1f}" for b in BUDGETS),
-             f"{_signed(*b2, 1)} (v{sga_version()})", f"{_signed(*b4, 1)} (unpaired)",
-             _signed(p["diff"], p["se"], 2), name]
+             f"`DEADLINE={plan['deadline']:g}` ({trimmed}), {draw.minutes:.1f} min, "
+             f"{draw.machine}, {pace(draw, previous)} in stage 1 ({kept} kept)",
+             str(draw.seed), *(f"{draw.scores[b]:.1f}" for b in BUDGETS),
+             f"{_pm(*draw.differences[2.0][SGA], 1)} (v{sga_version()})",
+             f"{_pm(*draw.differences[4.0][TI], 1)} (unpaired)",
+             _pm(draw.b5["diff"], draw.b5["se"], 2),
+             name + ("" if draw.minutes <= 120 else ", over 2 h")]
     return "| " + " | ".join(cells) + " |"
 
 
 def render(argv: list[str]) -> str:
-    """The section (or with ``--row`` the table row) for command-line ``argv``."""
-    p = argparse.ArgumentParser(prog="draw_section.py", description=__doc__.split("\n\n")[0])
-    p.add_argument("prefix", help="the draw's card prefix, docs/cards/ours_2h_intent_...")
-    p.add_argument("--draw", type=int, required=True, help="its number in the table")
-    p.add_argument("--previous", required=True, help="the card prefix of the draw before")
-    p.add_argument("--recipe", default=RECIPE, help="train_2h.sh's switches for the draw")
-    what = p.add_mutually_exclusive_group()
+    """What ``draw_section.py ARGV`` prints."""
+    parser = argparse.ArgumentParser(prog="draw_section.py",
+                                     description=__doc__.split("\n\n")[0])
+    parser.add_argument("prefix", help="the draw's card prefix, docs/cards/ours_2h_intent_...")
+    parser.add_argument("--draw", type=int, required=True, help="its number in the table")
+    parser.add_argument("--previous", required=True, help="the card prefix of the draw before")
+    parser.add_argument("--recipe", default=RECIPE, help="train_2h.sh's switches for the draw")
+    what = parser.add_mutually_exclusive_group()
     what.add_argument("--row", action="store_true", help="print the table row instead")
     what.add_argument("--performance", action="store_true",
                       help="print the draw's rows of docs/performance.md instead")
-    args = p.parse_args(argv)
+    args = parser.parse_args(argv)
     if not 1 < args.draw < 100:
-        p.error("--draw must be 2-99 (the section compares with the draw before)")
+        parser.error("--draw must be 2-99 (the section compares with the draw before)")
     draw, previous = Draw(args.prefix, args.draw), Draw(args.previous, args.draw - 1)
-    render_ = row if args.row else performance if args.performance else section
-    return render_(draw, previous, args.recipe)
+    renderer = row if args.row else performance if args.performance else section
+    return renderer(draw, previous, args.recipe)
 
 
 def main() -> None:
