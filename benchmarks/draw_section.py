@@ -42,8 +42,8 @@ import board_diff
 import boards
 from draw_rate import clopper_pearson, family, met
 from draw_signals import outcomes
-from paired_subset import _rows, mean_se
-from stage3_minutes import stamps, work
+from paired_subset import _rows, pair
+from stage3_minutes import scaled_seconds, stamps
 from train_throughput import card_segment, stage_cuts
 
 from maipp_bench.curves import read_curve
@@ -106,25 +106,6 @@ def machine_name(card_machine: str) -> str:
     Processor, 2 cores, ...": "Intel Xeon")."""
     cpu = re.sub(r"\((R|TM)\)|\bProcessor\b|\bCPU\b|@.*", "", card_machine.split(", ")[1])
     return " ".join(cpu.split())
-
-
-def pair(rows: dict[tuple, dict], ref: dict[tuple, dict], keys: list[tuple]) -> dict:
-    """``rows`` against ``ref`` on the episodes ``keys``: the mean paired difference and
-    its standard error, wins, mean Tr(P_f) and traps, the same split by whether ``rows``'
-    episode was trapped (count, mean, se), the episode of the worst Tr(P_f) (``worst``)
-    and the one that costs the most against ``ref`` (``costliest``)."""
-    d = {k: rows[k]["trace"] - ref[k]["trace"] for k in keys}
-    diff, se = mean_se(list(d.values()))
-    split = {}
-    for tag, trapped in (("untrapped", False), ("trapped", True)):
-        v = [x for k, x in d.items() if (rows[k]["traps"] > 0) == trapped]
-        split[tag] = (len(v), *mean_se(v)) if v else (0, float("nan"), float("nan"))
-    return {"n": len(keys), "diff": diff, "se": se, "wins": sum(v < 0 for v in d.values()),
-            "trace": st.mean(rows[k]["trace"] for k in keys),
-            "median": st.median(rows[k]["trace"] for k in keys),
-            "traps": st.mean(rows[k]["traps"] for k in keys), **split,
-            "worst": max(keys, key=lambda k: rows[k]["trace"]),
-            "costliest": max(keys, key=d.get)}
 
 
 class Draw:
@@ -278,8 +259,7 @@ def pace(draw: Draw, previous: Draw) -> str:
 def final_estimate_ratio(draw: Draw) -> float:
     """The final choice's seconds over their estimate from the start choice's
     (``stage3_minutes.py --calibrate``)."""
-    return draw.final["seconds"] / (draw.select["seconds"] * work(draw.final)
-                                    / work(draw.select))
+    return draw.final["seconds"] / scaled_seconds(draw.select, draw.final)
 
 
 def _member(path: str, draw: Draw) -> str:

@@ -127,6 +127,26 @@ def _episode(text: str) -> tuple[int, int]:
     return int(instance), int(trial)
 
 
+def pair(rows: dict[tuple, dict], ref: dict[tuple, dict], keys: list[tuple]) -> dict:
+    """``rows`` against ``ref`` on the episodes ``keys``: the mean paired difference and
+    its standard error, wins, mean and median Tr(P_f) and mean traps; the same difference
+    split by whether ``rows``' episode was trapped (``untrapped`` / ``trapped``: count,
+    mean, se), which says where it comes from; the episode of the worst Tr(P_f)
+    (``worst``) and the one that costs the most against ``ref`` (``costliest``)."""
+    d = {k: rows[k]["trace"] - ref[k]["trace"] for k in keys}
+    diff, se = mean_se(list(d.values()))
+    split = {}
+    for tag, trapped in (("untrapped", False), ("trapped", True)):
+        v = [x for k, x in d.items() if (rows[k]["traps"] > 0) == trapped]
+        split[tag] = (len(v), *mean_se(v)) if v else (0, float("nan"), float("nan"))
+    return {"n": len(keys), "diff": diff, "se": se, "wins": sum(v < 0 for v in d.values()),
+            "trace": st.mean(rows[k]["trace"] for k in keys),
+            "median": st.median(rows[k]["trace"] for k in keys),
+            "traps": st.mean(rows[k]["traps"] for k in keys), **split,
+            "worst": max(keys, key=lambda k: rows[k]["trace"]),
+            "costliest": max(keys, key=d.get)}
+
+
 def paired(subset: Path, suite: str, method: str, results: Path, against: list[str],
            sha: str = "", exclude: tuple[tuple[int, int], ...] = ()) -> None:
     """Print, per setting, each run's mean on ``subset``'s episodes and its paired
@@ -151,21 +171,13 @@ def paired(subset: Path, suite: str, method: str, results: Path, against: list[s
                 r = rows[k]
                 print(f"  {name:32s} left out: instance {k[1]} trial {k[2]}: Tr(P_f) "
                       f"{r['trace']:.1f}  traps {r['traps']}  distance {r['distance']:.2f}")
-            d = {k: rows[k]["trace"] - ref[k]["trace"] for k in keys}
-            diff, se = mean_se(list(d.values()))
-            worst = max(keys, key=lambda k: rows[k]["trace"])  # what a large std comes from
-            # Where the mean difference comes from: episodes with and without a trap.
-            split = [[v for k, v in d.items() if (rows[k]["traps"] > 0) == trapped]
-                     for trapped in (False, True)]
-            parts = "  ".join(f"{tag} {len(v)} eps {m:+.2f} ± {e:.2f}"
-                              for tag, v in zip(("untrapped", "trapped"), split) if v
-                              for m, e in [mean_se(v)])
-            print(f"  {name:32s} Tr(P_f) {st.mean(rows[k]['trace'] for k in keys):7.1f}"
-                  f" (median {st.median(rows[k]['trace'] for k in keys):.1f})"
-                  f"  traps {st.mean(rows[k]['traps'] for k in keys):.2f}"
-                  f"  minus {against[0]} {diff:+6.2f} ± {se:.2f}"
-                  + z_text(diff, se)
-                  + f"  wins {sum(v < 0 for v in d.values())}  {parts}"
+            s = pair(rows, ref, keys)
+            parts = "  ".join(f"{tag} {n} eps {m:+.2f} ± {e:.2f}"
+                              for tag in ("untrapped", "trapped") for n, m, e in [s[tag]] if n)
+            worst = s["worst"]  # what a large std comes from
+            print(f"  {name:32s} Tr(P_f) {s['trace']:7.1f} (median {s['median']:.1f})"
+                  f"  traps {s['traps']:.2f}  minus {against[0]} {s['diff']:+6.2f} ± "
+                  f"{s['se']:.2f}" + z_text(s["diff"], s["se"]) + f"  wins {s['wins']}  {parts}"
                   f"  worst {rows[worst]['trace']:.1f} (instance {worst[1]} trial {worst[2]})")
 
 

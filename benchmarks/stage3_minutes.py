@@ -61,6 +61,12 @@ def work(choice: dict) -> float:
     return len(choice["candidates"]) * sum(e * b for e, b in zip(episodes, budgets))
 
 
+def scaled_seconds(select: dict, final: dict) -> float:
+    """A finished final choice's seconds as estimated from the start choice's (MARGIN 1):
+    the work of each (``work``) scales them; ``--calibrate`` compares it with the real."""
+    return select["seconds"] * work(final) / work(select)
+
+
 def final_seconds(select: dict, final_episodes: int,
                   budgets: tuple[float, ...] = FINAL_BUDGETS) -> float:
     """The final choice's seconds estimated from the start choice's (MARGIN 1): the work
@@ -119,7 +125,7 @@ def calibrate(prefixes: list[str], minutes: float) -> None:
                                (Path(f"{prefix}_start_choice.json"),
                                 Path(f"{prefix}_choice.json"), Path(f"{prefix}_wall.txt")))
         select, final = json.loads(select.read_text()), json.loads(final.read_text())
-        estimate = select["seconds"] * work(final) / work(select)
+        estimate = scaled_seconds(select, final)
         ratios.append(final["seconds"] / estimate)
         line = (f"{prefix}: start choice {select['seconds']:.0f} s, final choice "
                 f"{final['seconds']:.0f} s, estimated {estimate:.0f} s: {ratios[-1]:.2f}x")
