@@ -32,6 +32,7 @@ import argparse
 import json
 import math
 import re
+import shlex
 import statistics as st
 import sys
 from datetime import datetime, timedelta
@@ -111,8 +112,11 @@ def machine_name(card_machine: str) -> str:
 class Draw:
     """One shipped draw's cards, and the figures its section cites."""
 
-    def __init__(self, prefix: str, number: int) -> None:
+    def __init__(self, prefix: str, number: int, aside: str = "") -> None:
         self.prefix, self.number = prefix, number
+        # what else ran on the box during the draw ("" for a draw that ran alone)
+        self.aside = aside
+        self.box_shared = f", not alone: {aside}" if aside else ""
         self.path = ROOT / prefix
         if not self.file(".json").exists():
             raise SystemExit(f"draw_section.py: no card {prefix}.json (ship the draw first)")
@@ -431,7 +435,8 @@ def section(draw: Draw, previous: Draw, recipe: str) -> str:
     return "\n".join([
         f"**A {ordinal(draw.number)} run: seed {draw.seed}, `{recipe}` with "
         f"{draw.precision}, under `DEADLINE`** ({start:%Y-%m-%d}).",
-        f"On a 2-core {draw.machine} box with {draw.native} (the cards name commit "
+        f"On a 2-core {draw.machine} box with {draw.native}{draw.box_shared} (the cards "
+        f"name commit "
         f"{draw.card['commit'][:7]}), scored by `benchmarks/score_draw.py` launched beside "
         "it; this section is rendered from the cards by `benchmarks/draw_section.py` (the "
         "last command):",
@@ -444,7 +449,7 @@ def section(draw: Draw, previous: Draw, recipe: str) -> str:
         f"--results {draw.out}_results",
         f"bash benchmarks/draw_figures.sh {draw.prefix} {previous.prefix}  # every figure below",
         f"python benchmarks/draw_section.py {draw.prefix} --draw {draw.number} --previous "
-        f"{previous.prefix}",
+        f"{previous.prefix}" + (f" --aside {shlex.quote(draw.aside)}" if draw.aside else ""),
         "```",
         "",
         f"{start:%Y-%m-%d %H:%M:%S} to {end:%H:%M:%S} UTC: **{draw.minutes:.1f} minutes** "
@@ -488,7 +493,8 @@ def performance(draw: Draw, previous: Draw, recipe: str) -> str:
         envs = [m[s]["frames"] // _updates(m[s]) // steps for s in ("seg1", "seg2")]
         label = (f"the same script and fields with `{recipe}`, {draw.precision}, seed "
                  f"{draw.seed} ({start:%Y-%m-%d, %H:%M}-{end:%H:%M} UTC, a 2-core "
-                 f"{draw.machine} box with {draw.native}; the cards name commit "
+                 f"{draw.machine} box with {draw.native}{draw.box_shared}; the cards name "
+                 "commit "
                  f"{draw.card['commit'][:7]}; `DEADLINE={draw.plan['deadline']:g}` gave "
                  f"stage 3 {draw.plan['minutes']:g} minutes; its held-out choices took "
                  f"{took[0]:.0f} s and {took[2]:.0f} s against the "
@@ -522,7 +528,8 @@ def row(draw: Draw, previous: Draw, recipe: str) -> str:
     cells = [str(draw.number),
              f"`{recipe}`, {draw.precision}, held-out set {held}, cut defaults, under "
              f"`DEADLINE={plan['deadline']:g}` ({trimmed}), {draw.minutes:.1f} min, "
-             f"{draw.machine}, {pace(draw, previous)} in stage 1 ({kept} kept)",
+             f"{draw.machine}, {pace(draw, previous)} in stage 1{draw.box_shared} "
+             f"({kept} kept)",
              str(draw.seed), *(f"{draw.scores[b]:.1f}" for b in BUDGETS),
              f"{_pm(*draw.differences[2.0][SGA], 1)} (v{sga_version()})",
              f"{_pm(*draw.differences[4.0][TI], 1)} (unpaired)",
@@ -539,6 +546,9 @@ def render(argv: list[str]) -> str:
     parser.add_argument("--draw", type=int, required=True, help="its number in the table")
     parser.add_argument("--previous", required=True, help="the card prefix of the draw before")
     parser.add_argument("--recipe", default=RECIPE, help="train_2h.sh's switches for the draw")
+    parser.add_argument("--aside", default="", metavar="TEXT",
+                        help="what else ran on the box during the draw (a draw not run alone "
+                             "says so in its section and rows)")
     what = parser.add_mutually_exclusive_group()
     what.add_argument("--row", action="store_true", help="print the table row instead")
     what.add_argument("--performance", action="store_true",
@@ -546,7 +556,8 @@ def render(argv: list[str]) -> str:
     args = parser.parse_args(argv)
     if not 1 < args.draw < 100:
         parser.error("--draw must be 2-99 (the section compares with the draw before)")
-    draw, previous = Draw(args.prefix, args.draw), Draw(args.previous, args.draw - 1)
+    draw = Draw(args.prefix, args.draw, args.aside)
+    previous = Draw(args.previous, args.draw - 1)
     renderer = row if args.row else performance if args.performance else section
     return renderer(draw, previous, args.recipe)
 
