@@ -4,6 +4,7 @@ rendered from the draw's committed cards, agree with what the docs say."""
 from __future__ import annotations
 
 import re
+import shlex
 from pathlib import Path
 
 import pytest
@@ -124,6 +125,22 @@ def test_performance_rows_carry_the_figures_of_docs_performance(draw_section, dr
     rows = draw_section.render(_args(draw, "--performance")).splitlines()
     assert len(rows) == 5
     assert [r for r in rows if r.split(" | ")[1:] not in perf] == []
+
+
+def test_sections_marked_in_the_docs_are_what_the_cards_render(draw_section):
+    """Every ``<!-- draw_section.py ARGS -->`` section of docs/results.md is the script's
+    output for ARGS, its row is in the table and its rows in docs/performance.md: figures
+    that drift from the cards, or a board rerun under them, fail here."""
+    text = RESULTS.read_text()
+    perf = (ROOT / "docs" / "performance.md").read_text().splitlines()
+    markers = list(re.finditer(r"<!-- draw_section\.py (.+?) -->\n", text))
+    assert markers, "docs/results.md marks no rendered section"
+    for m in markers:
+        args = shlex.split(m[1])
+        assert text[m.end():].startswith(draw_section.render(args) + "\n"), args
+        assert draw_section.render([*args, "--row"]) in text.splitlines(), args
+        rows = draw_section.render([*args, "--performance"]).splitlines()
+        assert [r for r in rows if r not in perf] == [], args
 
 
 def test_bad_input_gets_a_clear_error(draw_section):
