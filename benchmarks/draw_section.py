@@ -418,10 +418,14 @@ def counts_text(draw: Draw, level: float = 0.95) -> str:
             f"draws {rate(sorted(draws))}, {timely} within two hours.")
 
 
-def _both(draw: Draw, key: str, field: str = "frames_per_s") -> str:
-    """The two members' figures, "58.4 and 58.0" (or their updates, "105 and 104")."""
-    return " and ".join(f"{m[key]}" if field == "" else f"{m[key][field]:.1f}"
-                        for m in draw.members)
+def _fps(draw: Draw, stage: str) -> str:
+    """The two members' frames/s in a stage ("seg1" / "seg2"): "58.4 and 58.0"."""
+    return " and ".join(f"{m[stage]['frames_per_s']:.1f}" for m in draw.members)
+
+
+def _last(draw: Draw, stage: str) -> str:
+    """The two members' last update of a stage ("stage1" / "stage2"): "105 and 104"."""
+    return " and ".join(str(m[stage]) for m in draw.members)
 
 
 def section(draw: Draw, previous: Draw, recipe: str) -> str:
@@ -454,10 +458,10 @@ def section(draw: Draw, previous: Draw, recipe: str) -> str:
         "",
         f"{start:%Y-%m-%d %H:%M:%S} to {end:%H:%M:%S} UTC: **{draw.minutes:.1f} minutes** "
         f"(`{draw.prefix}_wall.txt`). The members (seeds {seeds}) made "
-        f"**{_both(draw, 'stage1', '')}** updates in stage 1 ({_both(draw, 'seg1')} frames/s, "
-        f"{pace(draw, previous)} {_both(previous, 'seg1')}) and {_both(draw, 'stage2', '')} "
-        f"by the end of stage 2 ({_both(draw, 'seg2')} frames/s there, against "
-        f"{_both(previous, 'seg2')}; `python benchmarks/train_throughput.py --card "
+        f"**{_last(draw, 'stage1')}** updates in stage 1 ({_fps(draw, 'seg1')} frames/s, "
+        f"{pace(draw, previous)} {_fps(previous, 'seg1')}) and {_last(draw, 'stage2')} "
+        f"by the end of stage 2 ({_fps(draw, 'seg2')} frames/s there, against "
+        f"{_fps(previous, 'seg2')}; `python benchmarks/train_throughput.py --card "
         f"{draw.prefix}_stages12.jsonl --split stages`, and the same for "
         f"`..._m1_stages12.jsonl`). {start_choice_text(draw)} {stage3_text(draw, previous)}",
         f"{protocol_text(draw)} {paired_text(draw)} {counts_text(draw)}",
