@@ -70,17 +70,29 @@ def met(outcome: dict) -> bool:
     return outcome["met"].startswith(("in the means", "by a margin"))
 
 
+def hits(ds: list[int], draws: dict[int, dict]) -> tuple[list[int], list[int]]:
+    """The draws of ``ds`` that met the target in the means, and of them those within two
+    hours."""
+    done = [d for d in ds if met(draws[d])]
+    return done, [d for d in done if "over 2 h" not in draws[d]["met"]]
+
+
+def rate(k: int, n: int, level: float = 0.95) -> str:
+    """"k of n (lo% to hi%)", the docs' way of writing a rate with its exact interval."""
+    lo, hi = clopper_pearson(k, n, level)
+    return f"{k} of {n} ({lo:.0%} to {hi:.0%})"
+
+
 def print_rate(name: str, ds: list[int], draws: dict[int, dict], level: float,
                width: int = 18) -> None:
     """One line of the table: the draws met in the means, and of them within two hours."""
-    hits = [d for d in ds if met(draws[d])]
-    timely = [d for d in hits if "over 2 h" not in draws[d]["met"]]
+    hits_, timely = hits(ds, draws)
     cells = []
-    for k in (len(hits), len(timely)):
+    for k in (len(hits_), len(timely)):
         lo, hi = clopper_pearson(k, len(ds), level)
         cells.append(f"{k:2d} ({lo:4.0%} to {hi:4.0%})")
     print(f"{name:{width}} {len(ds):5d}  {cells[0]:18}  {cells[1]:18}  "
-          f"{', '.join(map(str, hits))}")
+          f"{', '.join(map(str, hits_))}")
 
 
 def plot_margins(draws: dict[int, dict], out: Path) -> None:

@@ -41,7 +41,7 @@ from pathlib import Path
 
 import board_diff
 import boards
-from draw_rate import clopper_pearson, family, met
+from draw_rate import family, hits, rate
 from draw_signals import outcomes
 from paired_subset import _rows, pair
 from stage3_minutes import scaled_seconds, stamps
@@ -116,7 +116,6 @@ class Draw:
         self.prefix, self.number = prefix, number
         # what else ran on the box during the draw ("" for a draw that ran alone)
         self.aside = aside
-        self.box_shared = f", not alone: {aside}" if aside else ""
         self.path = ROOT / prefix
         if not self.file(".json").exists():
             raise SystemExit(f"draw_section.py: no card {prefix}.json (ship the draw first)")
@@ -152,6 +151,11 @@ class Draw:
     def read(self, suffix: str) -> dict:
         """The JSON card ``PREFIX + suffix``."""
         return json.loads(self.file(suffix).read_text())
+
+    @property
+    def box_shared(self) -> str:
+        """", not alone: ..." after the box's name for a draw that shared it, else ""."""
+        return f", not alone: {self.aside}" if self.aside else ""
 
     @property
     def minutes(self) -> float:
@@ -402,20 +406,18 @@ def counts_text(draw: Draw, level: float = 0.95) -> str:
     draws = {d: o for d, o in table.items() if d <= draw.number}
     mine = family(draws[draw.number]["recipe"])
 
-    def rate(ds: list[int]) -> str:
-        k = sum(met(draws[d]) for d in ds)
-        lo, hi = clopper_pearson(k, len(ds), level)
-        return f"{k} of {len(ds)} ({lo:.0%} to {hi:.0%})"
+    def of(ds: list[int]) -> str:
+        return rate(len(hits(ds, draws)[0]), len(ds), level)
 
-    timely = sum(met(o) and "over 2 h" not in o["met"] for o in draws.values())
+    timely = len(hits(sorted(draws), draws)[1])
     name, behind = verdict(draw)
     words = (f"**misses** the ranking **at {_budgets(behind)}**" if name == "missed" else
              f"**meets** the ranking **{name}**")
     return (f"So it {words}, {'within' if draw.minutes <= 120 else 'over'} the compute goal "
             f"({draw.minutes:.1f} minutes). Counts over the table's draws 1-{draw.number} "
             f"(`python benchmarks/draw_rate.py`; exact {level:.0%} intervals): `{mine}` "
-            f"{rate([d for d, o in draws.items() if family(o['recipe']) == mine])}; all "
-            f"draws {rate(sorted(draws))}, {timely} within two hours.")
+            f"{of([d for d, o in draws.items() if family(o['recipe']) == mine])}; all "
+            f"draws {of(sorted(draws))}, {timely} within two hours.")
 
 
 def _fps(draw: Draw, stage: str) -> str:
@@ -440,10 +442,9 @@ def section(draw: Draw, previous: Draw, recipe: str) -> str:
         f"**A {ordinal(draw.number)} run: seed {draw.seed}, `{recipe}` with "
         f"{draw.precision}, under `DEADLINE`** ({start:%Y-%m-%d}).",
         f"On a 2-core {draw.machine} box with {draw.native}{draw.box_shared} (the cards "
-        f"name commit "
-        f"{draw.card['commit'][:7]}), scored by `benchmarks/score_draw.py` launched beside "
-        "it; this section is rendered from the cards by `benchmarks/draw_section.py` (the "
-        "last command):",
+        f"name commit {draw.card['commit'][:7]}), scored by `benchmarks/score_draw.py` "
+        "launched beside it; this section is rendered from the cards by "
+        "`benchmarks/draw_section.py` (the last command):",
         "",
         "```bash",
         f"{recipe} {overrides}bash benchmarks/train_2h.sh {draw.out} {draw.seed}",
@@ -498,8 +499,7 @@ def performance(draw: Draw, previous: Draw, recipe: str) -> str:
         label = (f"the same script and fields with `{recipe}`, {draw.precision}, seed "
                  f"{draw.seed} ({start:%Y-%m-%d, %H:%M}-{end:%H:%M} UTC, a 2-core "
                  f"{draw.machine} box with {draw.native}{draw.box_shared}; the cards name "
-                 "commit "
-                 f"{draw.card['commit'][:7]}; `DEADLINE={draw.plan['deadline']:g}` gave "
+                 f"commit {draw.card['commit'][:7]}; `DEADLINE={draw.plan['deadline']:g}` gave "
                  f"stage 3 {draw.plan['minutes']:g} minutes; its held-out choices took "
                  f"{took[0]:.0f} s and {took[2]:.0f} s against the "
                  f"{ordinal(previous.number)}'s {took[1]:.0f} s and {took[3]:.0f} s; "

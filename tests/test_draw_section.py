@@ -143,6 +143,34 @@ def test_sections_marked_in_the_docs_are_what_the_cards_render(draw_section):
         assert [r for r in rows if r not in perf] == [], args
 
 
+def test_counts_written_by_hand_are_draw_rates(draw_section):
+    """The counts the status row, README and docs/training.md repeat after each draw are
+    what ``benchmarks/draw_rate.py`` counts from the table (a draw added to the table
+    without them fails here)."""
+    from draw_rate import clopper_pearson, family, hits, met, rate
+    from draw_signals import outcomes
+
+    draws = outcomes()
+    everything = sorted(draws)
+    done, timely = hits(everything, draws)
+    (lo, hi), (lo2, hi2) = (clopper_pearson(len(k), len(everything), 0.95)
+                            for k in (done, timely))
+    newest = 'WIDE=8 FINAL_BUDGETS="2 4 5"'
+    mine = [d for d, o in draws.items() if family(o["recipe"]) == newest]
+    missed = [d for d, o in draws.items() if not met(o)]
+    behind = [d for d in missed if draws[d]["B5_minus_ti"] > 0]
+    status = RESULTS.read_text().splitlines()[13]
+    assert (f"met in the means in {len(done)} of {len(everything)} two-hour draws, "
+            f"{len(timely)} of them within two hours** (`python benchmarks/draw_rate.py`; "
+            f"exact 95% intervals {lo:.0%} to {hi:.0%} and {lo2:.0%} to {hi2:.0%})") in status
+    family_rate = rate(len(hits(mine, draws)[0]), len(mine))
+    assert '`FINAL_BUDGETS="2 4 5"`' in status and f"in {family_rate}," in status
+    assert f"Most draws that missed ({len(behind)} of {len(missed)})" in status
+    of = family_rate.split(" (")[0]
+    assert f"B = 2), {of}, each within" in (ROOT / "README.md").read_text()
+    assert f'`FINAL_BUDGETS="2 4 5"` in {of}:' in (ROOT / "docs" / "training.md").read_text()
+
+
 def test_bad_input_gets_a_clear_error(draw_section):
     with pytest.raises(SystemExit, match="no card docs/cards/no_seed1_draw.json"):
         draw_section.render(["docs/cards/no_seed1_draw", "--draw", "3", "--previous", "x"])
