@@ -77,6 +77,13 @@ def hits(ds: list[int], draws: dict[int, dict]) -> tuple[list[int], list[int]]:
     return done, [d for d in done if "over 2 h" not in draws[d]["met"]]
 
 
+def missed_behind_ti(draws: dict[int, dict]) -> tuple[list[int], list[int]]:
+    """The draws that missed, and of them those behind ``catnipp_ti`` at B = 5 in the
+    mean."""
+    missed = [d for d, o in draws.items() if not met(o)]
+    return missed, [d for d in missed if draws[d]["B5_minus_ti"] > 0]
+
+
 def rate(k: int, n: int, level: float = 0.95) -> str:
     """"k of n (lo% to hi%)", the docs' way of writing a rate with its exact interval."""
     lo, hi = clopper_pearson(k, n, level)
@@ -156,8 +163,7 @@ def main() -> None:
             for prec, pds in sorted(by_precision.items()):
                 print_rate(f"  {prec}", pds, draws, args.level, width)
     print(f"(exact {args.level:.0%} intervals for each rate)")
-    missed = [d for d, o in draws.items() if not met(o)]
-    behind = [d for d in missed if draws[d]["B5_minus_ti"] > 0]
+    missed, behind = missed_behind_ti(draws)
     print(f"missed: {len(missed)}, of them behind catnipp_ti at B = 5 in the mean: "
           f"{len(behind)} ({', '.join(map(str, sorted(behind)))})")
     deciding = {2: "B2_minus_sga_mean_se", 4: "B4_minus_ti_mean_se", 5: "B5_minus_ti_mean_se"}

@@ -147,7 +147,7 @@ def test_counts_written_by_hand_are_draw_rates(draw_section):
     """The counts the status row, README and docs/training.md repeat after each draw are
     what ``benchmarks/draw_rate.py`` counts from the table (a draw added to the table
     without them fails here)."""
-    from draw_rate import clopper_pearson, family, hits, met, rate
+    from draw_rate import clopper_pearson, family, hits, missed_behind_ti, rate
     from draw_signals import outcomes
 
     draws = outcomes()
@@ -157,8 +157,7 @@ def test_counts_written_by_hand_are_draw_rates(draw_section):
                             for k in (done, timely))
     newest = 'WIDE=8 FINAL_BUDGETS="2 4 5"'
     mine = [d for d, o in draws.items() if family(o["recipe"]) == newest]
-    missed = [d for d, o in draws.items() if not met(o)]
-    behind = [d for d in missed if draws[d]["B5_minus_ti"] > 0]
+    missed, behind = missed_behind_ti(draws)
     status = RESULTS.read_text().splitlines()[13]
     assert (f"met in the means in {len(done)} of {len(everything)} two-hour draws, "
             f"{len(timely)} of them within two hours** (`python benchmarks/draw_rate.py`; "
