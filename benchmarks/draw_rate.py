@@ -166,6 +166,12 @@ def main() -> None:
     missed, behind = missed_behind_ti(draws)
     print(f"missed: {len(missed)}, of them behind catnipp_ti at B = 5 in the mean: "
           f"{len(behind)} ({', '.join(map(str, sorted(behind)))})")
+    from draw_section import trailing_at_b5  # it imports this module: import it late
+
+    decided, either = trailing_at_b5()
+    print(f"behind catnipp_ti at B = 5 from draw 60 on, ahead without their costliest "
+          f"episode: {', '.join(map(str, decided))}; behind either way: "
+          f"{', '.join(map(str, either))}")
     deciding = {2: "B2_minus_sga_mean_se", 4: "B4_minus_ti_mean_se", 5: "B5_minus_ti_mean_se"}
     for name, ds in groups.items():
         behind_at = {d: [b for b, key in deciding.items() if draws[d][key][0] > 0]

@@ -42,7 +42,7 @@ from pathlib import Path
 import board_diff
 import boards
 from draw_rate import family, hits, rate
-from draw_signals import outcomes
+from draw_signals import outcomes, table_rows
 from paired_subset import _rows, pair
 from stage3_minutes import scaled_seconds, stamps
 from train_throughput import card_segment, stage_cuts
@@ -230,6 +230,26 @@ class Draw:
     def b5(self) -> dict:
         """:meth:`paired` over all 300 episodes."""
         return self.paired()
+
+
+def trailing_at_b5(first: int = 60) -> tuple[list[int], list[int]]:
+    """Of the table's draws from ``first`` on that trail ``catnipp_ti`` at B = 5 in the mean
+    and ship their B = 5 episodes (``docs/cards/..._seedS_..._b5_results``, found by the
+    row's seed): those that lead without their costliest episode, and those that trail
+    either way (the status row's "trail ... with theirs and lead without")."""
+    decided, either = [], []
+    draws = outcomes()
+    for n, cells in table_rows().items():
+        if n < first or draws[n]["B5_minus_ti"] <= 0:
+            continue
+        seed = cells[2].strip()
+        found = sorted((ROOT / "docs" / "cards").glob(f"ours_2h_intent_seed{seed}_*_b5_results"))
+        if len(found) != 1:
+            raise SystemExit(f"draw {n}: {len(found)} B = 5 episode folders for its seed")
+        draw = Draw(str(found[0]).removesuffix("_b5_results"), n)
+        without = draw.paired((draw.b5["costliest"]["episode"],))
+        (decided if without["diff"] < 0 else either).append(n)
+    return decided, either
 
 
 def verdict(draw: Draw) -> tuple[str, list[float]]:

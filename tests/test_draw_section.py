@@ -165,6 +165,14 @@ def test_counts_written_by_hand_are_draw_rates(draw_section):
     family_rate = rate(len(hits(mine, draws)[0]), len(mine))
     assert '`FINAL_BUDGETS="2 4 5"`' in status and f"in {family_rate}," in status
     assert f"Most draws that missed ({len(behind)} of {len(missed)})" in status
+    decided, either = draw_section.trailing_at_b5()
+
+    def named(ns: list[int]) -> str:
+        words = [draw_section.ordinal(n) for n in ns]
+        return ", ".join(words[:-1]) + " and " + words[-1] if len(words) > 1 else words[0]
+
+    assert (f"(the {named(decided)} draws trail `catnipp_ti` with theirs and lead without; "
+            f"the {named(either)} trail either way;") in status
     of = family_rate.split(" (")[0]
     assert f"B = 2), {of}, each within" in (ROOT / "README.md").read_text()
     assert f'`FINAL_BUDGETS="2 4 5"` in {of}:' in (ROOT / "docs" / "training.md").read_text()
