@@ -84,6 +84,12 @@ def missed_behind_ti(draws: dict[int, dict]) -> tuple[list[int], list[int]]:
     return missed, [d for d in missed if draws[d]["B5_minus_ti"] > 0]
 
 
+def minutes_span(ds: list[int], draws: dict[int, dict]) -> dict[int, float]:
+    """The minutes of the draws in ``ds`` whose recipe cell states them (the docs write
+    their span, "within LO to HI minutes")."""
+    return {d: draws[d]["minutes"] for d in ds if draws[d]["minutes"] is not None}
+
+
 def rate(k: int, n: int, level: float = 0.95) -> str:
     """"k of n (lo% to hi%)", the docs' way of writing a rate with its exact interval."""
     lo, hi = clopper_pearson(k, n, level)
@@ -184,7 +190,7 @@ def main() -> None:
         print(f"lowest B = {budget}: " + ", ".join(
             f"{draws[d]['scores'][budget]} (draw {d})" for d in low))
     for name, ds in groups.items():
-        timed = {d: draws[d]["minutes"] for d in ds if draws[d]["minutes"] is not None}
+        timed = minutes_span(ds, draws)
         if timed:
             print(f"minutes, {name}: {min(timed.values())} to {max(timed.values())} "
                   f"(shortest draw {min(timed, key=timed.get)}; {len(timed)} of "

@@ -147,7 +147,7 @@ def test_counts_written_by_hand_are_draw_rates(draw_section):
     """The counts the status row, README and docs/training.md repeat after each draw are
     what ``benchmarks/draw_rate.py`` counts from the table (a draw added to the table
     without them fails here)."""
-    from draw_rate import clopper_pearson, family, hits, missed_behind_ti, rate
+    from draw_rate import clopper_pearson, family, hits, minutes_span, missed_behind_ti, rate
     from draw_signals import outcomes
 
     draws = outcomes()
@@ -173,8 +173,12 @@ def test_counts_written_by_hand_are_draw_rates(draw_section):
 
     assert (f"(the {named(decided)} draws trail `catnipp_ti` with theirs and lead without; "
             f"the {named(either)} trail either way;") in status
+    timed = minutes_span(mine, draws).values()
+    span = f"within {min(timed)} to {max(timed)} minutes"
+    assert f"in {family_rate}, all " in status and span in status
+    assert f'to "A {draw_section.ordinal(max(everything))} run" |' in status
     of = family_rate.split(" (")[0]
-    assert f"B = 2), {of}, each within" in (ROOT / "README.md").read_text()
+    assert f"B = 2), {of}, each {span}" in (ROOT / "README.md").read_text()
     assert f'`FINAL_BUDGETS="2 4 5"` in {of}:' in (ROOT / "docs" / "training.md").read_text()
 
 
