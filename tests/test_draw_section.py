@@ -175,7 +175,7 @@ def test_counts_written_by_hand_are_draw_rates(draw_section):
             f"the {named(either)} trail either way;") in status
     timed = minutes_span(mine, draws).values()
     span = f"within {min(timed)} to {max(timed)} minutes"
-    assert f"in {family_rate}, all " in status and span in status
+    assert f"in {family_rate}, each {span}" in status
     assert f'to "A {draw_section.ordinal(max(everything))} run" |' in status
     of = family_rate.split(" (")[0]
     assert f"B = 2), {of}, each {span}" in (ROOT / "README.md").read_text()
